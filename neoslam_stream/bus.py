@@ -1,0 +1,223 @@
+"""zenoh transport: sessions, publishers and bounded input queues.
+
+Sessions are peers with multicast and gossip scouting off, listening on loopback only unless the
+user configures other endpoints (zenoh's own default would listen on every interface). The
+processes of one run form a full mesh: each listens on its own loopback port and connects to the
+ports of the processes started before it, so frames go directly from producer to consumer.
+
+Two delivery modes (DESIGN.md "Queues and loss"):
+
+* **real-time**: each input is a bounded ring; a slow stage drops the *oldest* waiting message and
+  never blocks its upstream; publishers use congestion control DROP.
+* **lossless**: each input is a bounded FIFO whose producer blocks when full, publishers use
+  congestion control BLOCK, so back-pressure reaches the source and nothing is lost.
+
+The queues are fed by zenoh callbacks instead of zenoh's ``RingChannel``/``FifoChannel`` pollers so
+that one worker thread can wait on several inputs at once without polling (a wake-up costs nothing
+while idle, which matters with ~8 processes on 2 cores) and so that every eviction is counted with
+the frame number it removed. Semantics are those of ``RingChannel(capacity)`` (newest ``capacity``
+kept) and ``FifoChannel(capacity)`` (producer blocks); tests check both through real zenoh.
+"""
+
+from __future__ import annotations
+
+import json
+import socket
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import zenoh
+
+KEY_ROOT = "neoslam"
+
+
+def key_for(run: str, topic: str) -> str:
+    """Key expression of a topic in a run: ``neoslam/<run>/<topic>``."""
+    return f"{KEY_ROOT}/{run}/{topic}"
+
+
+def free_port(host: str = "127.0.0.1") -> int:
+    """A TCP port that is free on ``host`` right now (the OS picks it)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+def make_config(listen: Sequence[str] | None = None, connect: Sequence[str] | None = None,
+                shm: bool = True, mode: str = "peer") -> zenoh.Config:
+    """A zenoh config with safe defaults: scouting off, loopback listening, optional SHM."""
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(mode))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("scouting/gossip/enabled", "false")
+    # zenoh's peer default listens on tcp/[::]:0 (every interface): never leave it implicit.
+    conf.insert_json5("listen/endpoints", json.dumps(list(listen or [])))
+    conf.insert_json5("connect/endpoints", json.dumps(list(connect or [])))
+    conf.insert_json5("transport/shared_memory/enabled", "true" if shm else "false")
+    return conf
+
+
+def open_session(listen: list[str] | None = None, connect: list[str] | None = None,
+                 shm: bool = True, mode: str = "peer") -> zenoh.Session:
+    """Open a zenoh session (peer mode, scouting off, loopback-only unless endpoints say otherwise).
+
+    ``listen``/``connect`` are zenoh endpoints such as ``tcp/127.0.0.1:7447``. With both empty the
+    session talks to nobody but itself, which is what a test of one process wants.
+    """
+    return zenoh.open(make_config(listen, connect, shm, mode))
+
+
+def wait_for_peers(session: zenoh.Session, n: int, timeout: float) -> bool:
+    """Wait until ``session`` has links to ``n`` peers (zenoh retries connections in the background)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if len(list(session.info.peers_zid())) >= n:
+            return True
+        time.sleep(0.05)
+    return False
+
+
+# --------------------------------------------------------------------------- input queue
+
+@dataclass
+class QueueStats:
+    received: int = 0
+    evicted: int = 0
+
+
+class InputQueue:
+    """One waiting place for all the inputs of a worker.
+
+    Each topic has its own bound: in ``ring`` mode a full topic drops its oldest item (counted),
+    in ``fifo`` mode the producing zenoh thread blocks until there is room (back-pressure).
+    ``get`` returns items of any topic in arrival order.
+    """
+
+    def __init__(self, capacities: dict[str, int], lossless: bool) -> None:
+        if any(c < 1 for c in capacities.values()):
+            raise ValueError(f"queue capacities must be >= 1, got {capacities}")
+        self.lossless = lossless
+        self.capacities = dict(capacities)
+        self._items: dict[str, deque] = {t: deque() for t in capacities}
+        self._order: deque[tuple[str, int]] = deque()  # (topic, seq) arrival order
+        self._seq = 0
+        self._cond = threading.Condition()
+        self._closed = False
+        self.stats: dict[str, QueueStats] = {t: QueueStats() for t in capacities}
+
+    def put(self, topic: str, payload: bytes, received: float) -> None:
+        with self._cond:
+            q = self._items[topic]
+            cap = self.capacities[topic]
+            if self.lossless:
+                while len(q) >= cap and not self._closed:
+                    self._cond.wait(0.1)
+                if self._closed:
+                    return
+            elif len(q) >= cap:
+                q.popleft()
+                self.stats[topic].evicted += 1
+            self._seq += 1
+            q.append((self._seq, payload, received))
+            self._order.append((topic, self._seq))
+            self.stats[topic].received += 1
+            self._cond.notify_all()
+
+    def _pop_next(self) -> tuple[str, bytes, float] | None:
+        while self._order:
+            topic, seq = self._order.popleft()
+            q = self._items[topic]
+            if q and q[0][0] == seq:
+                _, payload, received = q.popleft()
+                return topic, payload, received
+            # that item was evicted; its order entry is stale
+        return None
+
+    def get(self, timeout: float) -> tuple[str, bytes, float] | None:
+        """The oldest waiting item of any topic, or None after ``timeout`` seconds."""
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while True:
+                item = self._pop_next()
+                if item is not None:
+                    self._cond.notify_all()
+                    return item
+                remaining = deadline - time.monotonic()
+                if remaining <= 0 or self._closed:
+                    return None
+                self._cond.wait(remaining)
+
+    def get_more(self, topic: str, limit: int) -> list[tuple[bytes, float]]:
+        """Up to ``limit`` further waiting items of ``topic`` (for micro-batching), oldest first."""
+        out: list[tuple[bytes, float]] = []
+        with self._cond:
+            q = self._items[topic]
+            while q and len(out) < limit:
+                _, payload, received = q.popleft()
+                out.append((payload, received))
+            if out:
+                # their entries in _order are now stale and skipped by _pop_next
+                self._cond.notify_all()
+        return out
+
+    def depth(self) -> dict[str, int]:
+        with self._cond:
+            return {t: len(q) for t, q in self._items.items()}
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+
+class Bus:
+    """A session bound to one run: publishers and queue-fed subscribers by topic name."""
+
+    def __init__(self, session: zenoh.Session, run: str, lossless: bool) -> None:
+        self.session = session
+        self.run = run
+        self.lossless = lossless
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._subscribers: list[zenoh.Subscriber] = []
+
+    def publisher(self, topic: str, express: bool = False) -> zenoh.Publisher:
+        pub = self._publishers.get(topic)
+        if pub is None:
+            cc = zenoh.CongestionControl.BLOCK if self.lossless else zenoh.CongestionControl.DROP
+            pub = self.session.declare_publisher(key_for(self.run, topic), congestion_control=cc,
+                                                 express=express)
+            self._publishers[topic] = pub
+        return pub
+
+    def put(self, topic: str, payload: bytes) -> None:
+        self.publisher(topic).put(payload)
+
+    def subscribe(self, topic: str, queue: InputQueue) -> None:
+        """Feed ``topic`` into ``queue`` (ring or FIFO semantics are the queue's)."""
+
+        def on_sample(sample: zenoh.Sample, _topic: str = topic) -> None:
+            queue.put(_topic, sample.payload.to_bytes(), time.time())
+
+        self._subscribers.append(self.session.declare_subscriber(key_for(self.run, topic), on_sample))
+
+    def subscribe_callback(self, key_expr: str, fn: Callable[[zenoh.Sample], None]) -> zenoh.Subscriber:
+        sub = self.session.declare_subscriber(key_expr, fn)
+        self._subscribers.append(sub)
+        return sub
+
+    def close(self) -> None:
+        for sub in self._subscribers:
+            try:
+                sub.undeclare()
+            except Exception:  # already closed with the session
+                pass
+        for pub in self._publishers.values():
+            try:
+                pub.undeclare()
+            except Exception:
+                pass
+        self._subscribers.clear()
+        self._publishers.clear()

@@ -1,0 +1,152 @@
+"""Typed run configuration (pydantic) and the YAML loader.
+
+One model per component; ``RunConfig`` composes them. Unknown keys are errors, and a bad value gives
+one clear message naming the field (``ConfigError``). Algorithm sections are the stage modules' own
+config models, so their defaults live next to the algorithm they describe.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
+
+
+class ConfigError(ValueError):
+    """A configuration file or value is invalid; the text names the field and the problem."""
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class BusConfig(Strict):
+    """zenoh transport. Every process of a run listens on its own loopback port (assigned
+    automatically on ``host``) and connects to the others; ``listen``/``connect`` add endpoints,
+    e.g. ``connect: [tcp/10.0.0.2:7447]`` for a zenoh router that links several hosts."""
+
+    host: str = "127.0.0.1"
+    listen: list[str] = Field(default_factory=list)
+    connect: list[str] = Field(default_factory=list)
+    shm: bool = True
+    #: input queue capacity per topic (real-time: ring, drop-oldest; lossless: FIFO, blocks).
+    #: image 1 = always the newest frame; odom is tiny and needed for path integration, so deep.
+    capacity: dict[str, int] = Field(default_factory=lambda: {"image": 1, "odom": 256, "groundtruth": 256,
+                                                              "pose_cells/action": 256})
+    default_capacity: int = Field(2, ge=1)
+    #: lossless mode: the source runs at most this many frames ahead of the final topic
+    window: int = Field(8, ge=1)
+
+    @field_validator("capacity")
+    @classmethod
+    def _positive(cls, v: dict[str, int]) -> dict[str, int]:
+        bad = {k: c for k, c in v.items() if c < 1}
+        if bad:
+            raise ValueError(f"capacities must be >= 1: {bad}")
+        return v
+
+
+class SourceConfig(Strict):
+    """Where frames come from. ``kind`` names a registered source (see ``SOURCES``)."""
+
+    kind: str = "synthetic"
+    params: dict[str, Any] = Field(default_factory=dict)
+    #: auto: recorded timing for real-time runs of recorded data, as fast as possible when lossless
+    pacing: Literal["auto", "fixed", "recorded", "asap"] = "auto"
+    rate: float | None = Field(None, gt=0)
+    rate_multiplier: float = Field(1.0, gt=0)
+    max_frames: int | None = Field(None, ge=1)
+    duration: float | None = Field(None, gt=0)
+
+
+class EmulatedConfig(Strict):
+    """The paper's worked example: service times of the emulated stages (ms)."""
+
+    tau_ms: list[float] = Field(default_factory=lambda: [50.0, 280.0, 20.0, 350.0])
+    busy: bool = False
+
+
+class RunSection(Strict):
+    pipeline: str = "emulated"
+    topology: Literal["pipeline", "monolithic"] = "pipeline"
+    #: lossless: nothing dropped, source back-pressured; realtime: drop-oldest rings
+    mode: Literal["lossless", "realtime"] = "lossless"
+    out: str = "runs"
+    name: str | None = None
+    seed: int = 42
+    #: threads per stage (torch/BLAS/numba); stages not named get 1
+    threads: dict[str, int] = Field(default_factory=dict)
+    live: bool = True
+    #: real-time mode: after the source ends, let frames in flight finish for this long
+    drain_s: float = Field(2.0, ge=0)
+    startup_timeout: float = Field(300.0, gt=0)
+    max_restarts: int = Field(3, ge=0)
+    max_batch: int = Field(8, ge=1)
+    log_level: str = "WARNING"
+    #: save every stage's state every N source frames (0 = never); see docs/reliability.md
+    checkpoint_every: int = Field(0, ge=0)
+
+
+class RunConfig(Strict):
+    run: RunSection = Field(default_factory=RunSection)
+    bus: BusConfig = Field(default_factory=BusConfig)
+    source: SourceConfig = Field(default_factory=lambda: SourceConfig(kind="emulated", params={"frames": None}))
+    emulated: EmulatedConfig = Field(default_factory=EmulatedConfig)
+
+
+def _format_error(exc: ValidationError, origin: str) -> str:
+    parts = []
+    for err in exc.errors():
+        loc = ".".join(str(p) for p in err["loc"]) or "<root>"
+        parts.append(f"{loc}: {err['msg']}")
+    return f"invalid configuration {origin}: " + "; ".join(parts)
+
+
+def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None,
+                model: type[BaseModel] | None = None) -> Any:
+    """Load YAML (or the defaults when ``path`` is None), apply nested ``overrides``, validate."""
+    model = model or config_model()
+    data: dict[str, Any] = {}
+    origin = "(defaults)"
+    if path is not None:
+        p = Path(path)
+        if not p.exists() and not p.suffix and (CONFIG_DIR / f"{p}.yaml").exists():
+            p = CONFIG_DIR / f"{p}.yaml"
+        if not p.is_file():
+            raise ConfigError(f"config file {path} not found (names in {CONFIG_DIR} work too: "
+                              f"{', '.join(sorted(q.stem for q in CONFIG_DIR.glob('*.yaml')))})")
+        origin = str(p)
+        try:
+            loaded = yaml.safe_load(p.read_text()) or {}
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"{p} is not valid YAML: {exc}") from None
+        if not isinstance(loaded, dict):
+            raise ConfigError(f"{p} must hold a mapping at the top level")
+        data = loaded
+    if overrides:
+        data = _merge(data, overrides)
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(_format_error(exc, origin)) from None
+
+
+def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for k, v in over.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = _merge(out[k], v)
+        else:
+            out[k] = v
+    return out
+
+
+def config_model() -> type[BaseModel]:
+    """The full run config model: the runtime's sections plus the algorithm sections."""
+    from .pipelines import FullRunConfig
+
+    return FullRunConfig

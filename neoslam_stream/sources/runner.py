@@ -1,0 +1,250 @@
+"""The source process: reads a :class:`Source`, paces it and publishes its frames.
+
+Each :class:`SourceFrame` becomes an ``image`` message (with a ``source`` trace entry stamped at
+publication), plus ``odom`` and ``groundtruth`` messages with the same frame number.
+
+Pacing:
+
+* ``fixed``: ``rate`` frames per second (a live camera).
+* ``recorded``: the source's own stamps, times ``rate_multiplier``.
+* ``asap`` (lossless only): as fast as the pipeline takes. Publishers BLOCK, and a credit window
+  keeps the source at most ``window`` frames ahead of the last frame seen on the run's final topic,
+  so queues and memory stay bounded whatever the pipeline's speed.
+
+After its last frame the source keeps its session open until the supervisor tells it to stop
+(it does so once the pipeline has drained): zenoh loses samples still in flight when a publisher
+closes its session.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import signal
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from ..bus import Bus, key_for, open_session
+from ..messages import Message, decode, encode
+from .base import Source
+
+log = logging.getLogger("neoslam.source")
+
+
+@dataclass
+class SourceSpec:
+    """How to build a :class:`Source` in the source process: ``factory`` is ``"module:callable"``."""
+
+    factory: str
+    params: dict[str, Any] = field(default_factory=dict)
+
+    def build(self) -> Source:
+        module_name, _, attr = self.factory.partition(":")
+        if not attr:
+            raise ValueError(f"source factory {self.factory!r} must look like 'package.module:callable'")
+        src = getattr(importlib.import_module(module_name), attr)(**self.params)
+        if not isinstance(src, Source):
+            raise TypeError(f"{self.factory} returned {type(src).__name__}, not a Source")
+        return src
+
+
+@dataclass
+class SourceRunSpec:
+    source: SourceSpec
+    run: str
+    run_dir: str
+    lossless: bool
+    listen: list[str] = field(default_factory=list)
+    connect: list[str] = field(default_factory=list)
+    shm: bool = True
+    pacing: str = "fixed"  # fixed | recorded | asap
+    rate: float | None = 10.0
+    rate_multiplier: float = 1.0
+    max_frames: int | None = None
+    duration: float | None = None
+    window: int = 8
+    final_topic: str = "experience_map/pose"
+    stall_timeout: float = 60.0
+    #: after the last frame, wait at most this long for the supervisor's stop
+    linger_timeout: float = 600.0
+    progress: bool = False
+    #: frames below this number are skipped (resume from a checkpoint)
+    start_frame: int = 0
+    stats_hz: float = 2.0
+
+
+class _Progress:
+    """Frames seen on the final topic (credit window and end-of-run drain)."""
+
+    def __init__(self) -> None:
+        self.last_frame = -1
+        self.count = 0
+        self.last_change = time.monotonic()
+        self.cond = threading.Condition()
+
+    def on_sample(self, sample: Any) -> None:
+        try:
+            msg = decode(sample.payload.to_bytes())
+        except Exception:
+            return
+        with self.cond:
+            self.count += 1
+            if msg.frame > self.last_frame:
+                self.last_frame = msg.frame
+            self.last_change = time.monotonic()
+            self.cond.notify_all()
+
+    def wait_until(self, frame: int, stall_timeout: float, stop: threading.Event) -> bool:
+        with self.cond:
+            while self.last_frame < frame and not stop.is_set():
+                if time.monotonic() - self.last_change > stall_timeout:
+                    return False
+                self.cond.wait(0.1)
+        return True
+
+
+def frame_messages(sf: Any, published_at: float) -> list[tuple[str, Message]]:
+    out: list[tuple[str, Message]] = []
+    if sf.image is not None or sf.compressed is not None:
+        data: dict[str, Any] = {}
+        if sf.image is not None:
+            data["image"] = np.ascontiguousarray(sf.image)
+            data["encoding"] = sf.encoding
+        else:
+            data["compressed"] = bytes(sf.compressed)
+            data["format"] = sf.format or "jpeg"
+        out.append(("image", Message("image", sf.frame, sf.stamp, data,
+                                     [("source", published_at, published_at, published_at)])))
+    if sf.odom is not None:
+        vtrans, vrot, dt = sf.odom
+        out.append(("odom", Message("odom", sf.frame, sf.stamp,
+                                    {"vtrans": float(vtrans), "vrot": float(vrot), "dt": float(dt)})))
+    if sf.groundtruth is not None:
+        out.append(("groundtruth", Message("groundtruth", sf.frame, sf.stamp,
+                                           {"pose": np.asarray(sf.groundtruth, dtype=np.float64)})))
+    return out
+
+
+def run_source(spec: SourceRunSpec) -> None:
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s source %(levelname)s %(message)s")
+    stop = threading.Event()
+
+    def _stop(signum: int, _frame: Any) -> None:
+        stop.set()
+
+    signal.signal(signal.SIGTERM, _stop)
+    signal.signal(signal.SIGINT, _stop)
+    source = spec.source.build()
+    session = open_session(spec.listen, spec.connect, spec.shm)
+    bus = Bus(session, spec.run, spec.lossless)
+    progress = _Progress()
+    bus.subscribe_callback(key_for(spec.run, spec.final_topic), progress.on_sample)
+
+    def _on_control(sample: Any) -> None:
+        try:
+            msg = decode(sample.payload.to_bytes(), expected_type="control")
+        except Exception:
+            return
+        if msg.data["command"] == "stop" and msg.data.get("target") in (None, "source"):
+            stop.set()
+
+    bus.subscribe_callback(key_for(spec.run, "control"), _on_control)
+    for t in ("image", "odom", "groundtruth"):
+        bus.publisher(t)
+    token = session.liveliness().declare_token(key_for(spec.run, "alive/source"))
+
+    counts = {"image": 0, "odom": 0, "groundtruth": 0}
+    first_pub: float | None = None
+    last_pub: float | None = None
+    last_frame = -1
+    done = False
+    info = source.info()
+    next_stats = time.monotonic()
+
+    def publish_stats(final: bool = False) -> None:
+        data = {"stage": "source", "frames_in": counts["image"], "odom": counts["odom"],
+                "groundtruth": counts["groundtruth"], "first_publish": first_pub,
+                "last_publish": last_pub, "last_frame": last_frame, "done": done or final,
+                "final": final, "info": info, "time": time.time(), "pacing": spec.pacing,
+                "rate": spec.rate, "frames_done": progress.count}
+        session.put(key_for(spec.run, "stats/source"), encode(Message("stats", 0, time.time(), data),
+                                                               validate=False))
+
+    bar = None
+    if spec.progress and sys.stderr.isatty():
+        from rich.progress import Progress
+
+        total = source.length if spec.max_frames is None or source.length is None else \
+            min(spec.max_frames, source.length)
+        bar = Progress(transient=False)
+        bar.start()
+        task = bar.add_task("frames", total=total)
+
+    t0 = time.monotonic()
+    stamp0: float | None = None
+    n_sent = 0
+    try:
+        for sf in source:
+            if stop.is_set():
+                break
+            if sf.frame < spec.start_frame:
+                continue
+            if spec.max_frames is not None and n_sent >= spec.max_frames:
+                break
+            if spec.duration is not None and time.monotonic() - t0 >= spec.duration:
+                break
+            # pacing
+            if spec.pacing == "fixed" and spec.rate:
+                target = t0 + n_sent / spec.rate
+            elif spec.pacing == "recorded":
+                stamp0 = sf.stamp if stamp0 is None else stamp0
+                target = t0 + (sf.stamp - stamp0) / max(spec.rate_multiplier, 1e-9)
+            else:
+                target = None
+                if spec.lossless:
+                    ok = progress.wait_until(sf.frame - spec.window, spec.stall_timeout, stop)
+                    if not ok:
+                        log.warning("no progress on %s for %.0f s; sending on", spec.final_topic,
+                                    spec.stall_timeout)
+                        progress.last_change = time.monotonic()
+            if target is not None:
+                delay = target - time.monotonic()
+                if delay > 0:
+                    stop.wait(delay)
+                    if stop.is_set():
+                        break
+            now = time.time()
+            for topic, msg in frame_messages(sf, now):
+                bus.put(topic, encode(msg))
+                counts[topic] += 1
+            first_pub = now if first_pub is None else first_pub
+            last_pub = now
+            last_frame = sf.frame
+            n_sent += 1
+            if bar is not None:
+                bar.update(task, advance=1)
+            if time.monotonic() >= next_stats:
+                publish_stats()
+                next_stats = time.monotonic() + 1.0 / spec.stats_hz
+        done = True
+        publish_stats()
+        # Keep the session (and any shared-memory buffers) alive until the supervisor has seen the
+        # pipeline drain: zenoh loses samples in flight when their publisher closes.
+        deadline = time.monotonic() + spec.linger_timeout
+        while not stop.is_set() and time.monotonic() < deadline:
+            stop.wait(0.5)
+            publish_stats()
+    finally:
+        if bar is not None:
+            bar.stop()
+        publish_stats(final=True)
+        time.sleep(0.3)
+        token.undeclare()
+        bus.close()
+        session.close()
+        source.close()

@@ -1,0 +1,328 @@
+"""Builds and supervises a run: the source, the stage workers and the monitor, each a process.
+
+Topologies (DESIGN.md): ``pipeline`` runs one process per stage connected by zenoh pub/sub;
+``monolithic`` runs every stage in one process, in sequence, and like the original blocking NeoSLAM
+discards frames that arrive while it is busy except the newest (an image ring of capacity 1).
+Both host the very same stage adapters.
+
+The supervisor (this process) is a zenoh peer too: it listens on a loopback port, every child
+listens on its own and connects to all processes started before it (a full mesh, so frames go
+directly from producer to consumer). It waits until every worker announced readiness, starts the
+source, restarts a crashed worker (bounded, reported), detects the end of the run (source done and
+the pipeline drained), stops everything in order and completes ``report.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import multiprocessing as mp
+import os
+import secrets
+import signal
+import time
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from .bus import free_port, key_for, open_session
+from .messages import Message, encode
+from .monitor import MonitorSpec, StatsCollector
+from .pipelines import PipelinePlan, build_plan, source_factory
+from .procs import monitor_entry, source_entry, worker_entry
+from .sources.runner import SourceRunSpec, SourceSpec
+from .worker import WorkerSpec
+
+log = logging.getLogger("neoslam.topology")
+
+
+class RunError(RuntimeError):
+    """A run could not start or finish; the text says which process and why."""
+
+
+@dataclass
+class RunResult:
+    run_dir: Path
+    report: dict[str, Any]
+    interrupted: bool = False
+    restarts: dict[str, int] = field(default_factory=dict)
+
+
+def group_workers(plan: PipelinePlan, topology: str) -> dict[str, list]:
+    """Worker name -> its StageSpecs (one each for ``pipeline``, all in one for ``monolithic``)."""
+    if topology == "monolithic":
+        return {"monolithic": list(plan.stages)}
+    if topology == "pipeline":
+        return {s.name: [s] for s in plan.stages}
+    raise ValueError(f"unknown topology {topology!r} (pipeline or monolithic)")
+
+
+def make_run_dir(cfg: Any, out: str | Path | None) -> tuple[str, Path]:
+    name = cfg.run.name or f"{cfg.run.pipeline}-{cfg.run.topology}-{datetime.now():%Y%m%d-%H%M%S}"
+    base = Path(out) if out is not None else Path(cfg.run.out) / name
+    base.mkdir(parents=True, exist_ok=True)
+    return name, base
+
+
+class Supervisor:
+    def __init__(self, cfg: Any, run_dir: str | Path | None = None, resume: str | Path | None = None) -> None:
+        self.cfg = cfg
+        self.plan = build_plan(cfg)
+        self.name, self.run_dir = make_run_dir(cfg, run_dir)
+        self.run_id = f"r{secrets.token_hex(4)}"
+        self.lossless = cfg.run.mode == "lossless"
+        self.ctx = mp.get_context("spawn")
+        self.groups = group_workers(self.plan, cfg.run.topology)
+        self.procs: dict[str, Any] = {}
+        self.restarts: dict[str, int] = {}
+        self.interrupts = 0
+        self.resume = Path(resume) if resume else None
+        host = cfg.bus.host
+        order = ["supervisor", "monitor", *self.groups, "source"]
+        self.endpoints = {n: f"tcp/{host}:{free_port(host)}" for n in order}
+        self.order = order
+
+    # ------------------------------------------------------------------ specs
+    def _links(self, name: str) -> tuple[list[str], list[str]]:
+        i = self.order.index(name)
+        listen = [self.endpoints[name], *self.cfg.bus.listen]
+        connect = [self.endpoints[n] for n in self.order[:i]] + list(self.cfg.bus.connect)
+        return listen, connect
+
+    def worker_spec(self, wname: str) -> WorkerSpec:
+        specs = self.groups[wname]
+        listen, connect = self._links(wname)
+        caps = dict(self.cfg.bus.capacity)
+        resume_states = {}
+        if self.resume is not None:
+            for s in specs:
+                p = self.resume / "checkpoint" / f"{s.name}.state"
+                if p.exists():
+                    resume_states[s.name] = str(p)
+        return WorkerSpec(
+            name=wname, stages=specs, run=self.run_id, run_dir=str(self.run_dir), lossless=self.lossless,
+            listen=listen, connect=connect, shm=self.cfg.bus.shm, capacities=caps,
+            default_capacity=self.cfg.bus.default_capacity,
+            threads=max(s.threads for s in specs) if wname != "monolithic" else max(
+                1, max(s.threads for s in specs)),
+            max_batch=self.cfg.run.max_batch if self.lossless else 1, log_level=self.cfg.run.log_level,
+            resume_states=resume_states, expected_peers=self.order.index(wname),
+            checkpoint_every=self.cfg.run.checkpoint_every,
+            checkpoint_dir=str(self.run_dir / "checkpoint") if self.cfg.run.checkpoint_every else "")
+
+    def source_spec(self, start_frame: int = 0) -> SourceRunSpec:
+        src = self.cfg.source
+        listen, connect = self._links("source")
+        pacing = src.pacing
+        if pacing == "auto":
+            pacing = "fixed" if src.rate else ("asap" if self.lossless else "recorded")
+        if pacing == "asap" and not self.lossless:
+            raise RunError("pacing 'asap' needs lossless mode (real-time runs need a rate)")
+        return SourceRunSpec(
+            source=SourceSpec(source_factory(src.kind), dict(src.params)), run=self.run_id,
+            run_dir=str(self.run_dir), lossless=self.lossless, listen=listen, connect=connect,
+            shm=self.cfg.bus.shm, pacing=pacing, rate=src.rate, rate_multiplier=src.rate_multiplier,
+            max_frames=src.max_frames, duration=src.duration, window=self.cfg.bus.window,
+            final_topic=self.plan.final_topic, progress=self.cfg.run.live, start_frame=start_frame)
+
+    def monitor_spec(self) -> MonitorSpec:
+        listen, connect = self._links("monitor")
+        meta = {"topology": self.cfg.run.topology, "mode": self.cfg.run.mode,
+                "pipeline": self.cfg.run.pipeline, "run": self.name, "rate": self.cfg.source.rate,
+                "final_topic": self.plan.final_topic}
+        return MonitorSpec(run=self.run_id, run_dir=str(self.run_dir), final_topic=self.plan.final_topic,
+                           entry_stages=self.plan.entry_stages,
+                           workers={w: [s.name for s in specs] for w, specs in self.groups.items()},
+                           meta=meta, listen=listen, connect=connect, shm=self.cfg.bus.shm,
+                           live=self.cfg.run.live)
+
+    # ------------------------------------------------------------------ processes
+    def _start(self, name: str, target: Any, spec: Any) -> None:
+        p = self.ctx.Process(target=target, args=(spec,), name=f"neoslam-{name}", daemon=False)
+        p.start()
+        self.procs[name] = p
+
+    def _alive_tokens(self) -> set[str]:
+        names = set()
+        for reply in self.session.liveliness().get(key_for(self.run_id, "alive/*"), timeout=1.0):
+            try:
+                names.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
+            except Exception:
+                continue
+        return names
+
+    def _wait_ready(self, names: list[str], timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        while True:
+            alive = self._alive_tokens()
+            if all(n in alive for n in names):
+                return
+            for n in names:
+                p = self.procs.get(n)
+                if p is not None and not p.is_alive():
+                    raise RunError(f"process {n!r} exited with code {p.exitcode} during start-up "
+                                   f"(see its log above)")
+            if time.monotonic() > deadline or self.interrupts:
+                missing = [n for n in names if n not in alive]
+                raise RunError(f"processes not ready after {timeout:.0f} s: {missing}")
+            time.sleep(0.2)
+
+    def _control(self, command: str, target: str | None = None, **extra: Any) -> None:
+        data = {"command": command, **extra}
+        if target is not None:
+            data["target"] = target
+        self.session.put(key_for(self.run_id, "control"), encode(Message("control", 0, time.time(), data)))
+
+    def _on_signal(self, signum: int, _frame: Any) -> None:
+        self.interrupts += 1
+        if self.interrupts >= 2:
+            log.warning("second interrupt: killing every process of the run")
+            for p in self.procs.values():
+                if p.is_alive():
+                    p.kill()
+
+    # ------------------------------------------------------------------ the run
+    def run(self) -> RunResult:
+        (self.run_dir / "config.yaml").write_text(yaml.safe_dump(self.cfg.model_dump(mode="json"),
+                                                                 sort_keys=False))
+        (self.run_dir / "endpoints.json").write_text(json.dumps(
+            {"run": self.run_id, "name": self.name, "connect": [self.endpoints["supervisor"]]}, indent=2))
+        old_int = signal.signal(signal.SIGINT, self._on_signal)
+        old_term = signal.signal(signal.SIGTERM, self._on_signal)
+        self.session = open_session([self.endpoints["supervisor"], *self.cfg.bus.listen],
+                                    list(self.cfg.bus.connect), self.cfg.bus.shm)
+        self.collector = StatsCollector()
+        stats_sub = self.session.declare_subscriber(key_for(self.run_id, "stats/**"),
+                                                    self.collector.on_sample)
+        interrupted = False
+        try:
+            self._start("monitor", monitor_entry, self.monitor_spec())
+            self._wait_ready(["monitor"], 60.0)
+            for w in self.groups:
+                self._start(w, worker_entry, self.worker_spec(w))
+            self._wait_ready(list(self.groups), self.cfg.run.startup_timeout)
+            start_frame = self._resume_frame()
+            self._start("source", source_entry, self.source_spec(start_frame))
+            interrupted = self._supervise()
+        finally:
+            self._shutdown()
+            stats_sub.undeclare()
+            self.session.close()
+            signal.signal(signal.SIGINT, old_int)
+            signal.signal(signal.SIGTERM, old_term)
+        report = self._complete_report(interrupted)
+        return RunResult(self.run_dir, report, interrupted, dict(self.restarts))
+
+    def _resume_frame(self) -> int:
+        if self.resume is None:
+            return 0
+        meta = self.resume / "checkpoint" / "checkpoint.json"
+        if not meta.exists():
+            raise RunError(f"no checkpoint in {self.resume} (expected {meta})")
+        return int(json.loads(meta.read_text())["next_frame"])
+
+    def _stage_names(self) -> list[str]:
+        return [s.name for specs in self.groups.values() for s in specs]
+
+    def _supervise(self) -> bool:
+        """Until the source is done and the pipeline drained; returns True when interrupted."""
+        src_done_at: float | None = None
+        while True:
+            time.sleep(0.2)
+            if self.interrupts:
+                return True
+            self._restart_crashed()
+            src = self.collector.snapshot().get("source", {})
+            source_proc = self.procs["source"]
+            if src_done_at is None and (src.get("done") or not source_proc.is_alive()):
+                src_done_at = time.monotonic()
+            if src_done_at is None:
+                continue
+            waited = time.monotonic() - src_done_at
+            if self.lossless:
+                if self.collector.quiet(self._stage_names(), for_s=1.0, fresh_s=1.5):
+                    return False
+                if waited > 600:
+                    log.warning("pipeline did not drain within 600 s after the source ended")
+                    return False
+            elif waited >= self.cfg.run.drain_s:
+                return False
+
+    def _restart_crashed(self) -> None:
+        for w in self.groups:
+            p = self.procs.get(w)
+            if p is None or p.is_alive():
+                continue
+            n = self.restarts.get(w, 0)
+            if n >= self.cfg.run.max_restarts:
+                raise RunError(f"worker {w!r} died (exit code {p.exitcode}) and was already restarted "
+                               f"{n} times; giving up")
+            log.warning("worker %s died with exit code %s; restarting (%d/%d)", w, p.exitcode, n + 1,
+                        self.cfg.run.max_restarts)
+            self.restarts[w] = n + 1
+            spec = self.worker_spec(w)
+            ckpt = self.run_dir / "checkpoint"
+            for s in spec.stages:  # come back with the last checkpointed state when there is one
+                path = ckpt / f"{s.name}.state"
+                if path.exists():
+                    spec.resume_states[s.name] = str(path)
+            self._start(w, worker_entry, spec)
+            self._wait_ready([w], self.cfg.run.startup_timeout)
+
+    def _shutdown(self) -> None:
+        """Stop the source, then the workers (they flush), then the monitor; nothing left behind."""
+        def stop(names: list[str], timeout: float) -> None:
+            for n in names:
+                self._control("stop", n)
+            deadline = time.monotonic() + timeout
+            for n in names:
+                p = self.procs.get(n)
+                if p is None:
+                    continue
+                p.join(max(0.1, deadline - time.monotonic()))
+                if p.is_alive():
+                    log.warning("%s did not stop in time; terminating", n)
+                    p.terminate()
+                    p.join(5)
+                if p.is_alive():
+                    p.kill()
+                    p.join(2)
+
+        try:
+            workers = [w for w in self.groups if w in self.procs]
+            if self.lossless:
+                if "source" in self.procs:
+                    stop(["source"], 10)
+                stop(workers, 60)
+            else:  # a live run ends at once: what is still in flight when the camera stops is lost
+                stop([n for n in ("source", *workers) if n in self.procs], 60)
+            if "monitor" in self.procs:
+                stop(["monitor"], 30)
+        finally:
+            for p in self.procs.values():
+                if p.is_alive():
+                    p.kill()
+                    p.join(2)
+
+    def _complete_report(self, interrupted: bool) -> dict[str, Any]:
+        path = self.run_dir / "report.json"
+        if path.exists():
+            report = json.loads(path.read_text())
+        else:
+            report = {"error": "the monitor wrote no report"}
+        report["restarts"] = dict(self.restarts)
+        report["interrupted"] = interrupted
+        report["run_dir"] = str(self.run_dir)
+        report["workers"] = {w: [s.name for s in specs] for w, specs in self.groups.items()}
+        tmp = path.with_suffix(".json.tmp")
+        tmp.write_text(json.dumps(report, indent=2))
+        os.replace(tmp, path)
+        return report
+
+
+def run(cfg: Any, run_dir: str | Path | None = None, resume: str | Path | None = None) -> RunResult:
+    """Run ``cfg`` to the end (or until interrupted) and return the report."""
+    return Supervisor(cfg, run_dir, resume).run()

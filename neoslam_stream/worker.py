@@ -1,0 +1,414 @@
+"""A worker process: hosts a chain of one or more stage adapters and measures them.
+
+In the ``pipeline`` topology every worker hosts one stage; in the ``monolithic`` topology one worker
+hosts them all and routes the chain's internal topics directly (no bus), which is the original
+NeoSLAM's blocking design. For each hosted stage the worker keeps counters (received, processed,
+published, errors with their causes, strided, evicted from its input ring), the service time
+tau_i per frame and the queueing time, and publishes them on ``stats/<stage>`` at ``stats_hz``.
+
+A worker never dies from one message: decoding faults (:class:`MessageError`), bad input
+(:class:`StageInputError`, ``ValueError``) and even unexpected exceptions in an adapter are counted,
+logged once per cause and skipped. SIGINT/SIGTERM or a ``control`` message ``stop`` end it cleanly:
+queued messages are processed, adapters flushed, outputs and final stats published.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import time
+import traceback
+from collections import defaultdict
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .bus import Bus, InputQueue, key_for, open_session, wait_for_peers
+from .messages import Message, MessageError, decode, encode
+from .stage import StageAdapter, StageInputError, StageSpec
+
+log = logging.getLogger("neoslam.worker")
+
+
+@dataclass
+class WorkerSpec:
+    """Everything a worker process needs; plain data so it crosses a ``spawn``."""
+
+    name: str
+    stages: list[StageSpec]
+    run: str
+    run_dir: str
+    lossless: bool
+    listen: list[str] = field(default_factory=list)
+    connect: list[str] = field(default_factory=list)
+    shm: bool = True
+    #: input ring/FIFO capacity per external topic; others get ``default_capacity``.
+    capacities: dict[str, int] = field(default_factory=dict)
+    default_capacity: int = 2
+    threads: int = 1
+    stats_hz: float = 2.0
+    #: micro-batching: at most this many waiting frames of one topic are processed together.
+    max_batch: int = 8
+    #: topics that are published even when consumed inside the chain.
+    publish_internal: list[str] = field(default_factory=list)
+    log_level: str = "WARNING"
+    #: adapter state to load before processing (stage name -> path of a state file), see checkpoint.py
+    resume_states: dict[str, str] = field(default_factory=dict)
+    #: number of other processes this one should be linked to before it announces readiness
+    expected_peers: int = 0
+    #: save each stage's state at every multiple of this frame number (0 = never)
+    checkpoint_every: int = 0
+    checkpoint_dir: str = ""
+
+
+class ServiceStats:
+    """Per-stage service and queueing times (seconds) with bounded memory."""
+
+    MAX_SAMPLES = 200_000
+
+    def __init__(self) -> None:
+        self.tau: list[float] = []
+        self.wait: list[float] = []
+        self.tau_sum = 0.0
+        self.n = 0
+        self.tau_max = 0.0
+
+    def add(self, tau: float, wait: float) -> None:
+        self.n += 1
+        self.tau_sum += tau
+        self.tau_max = max(self.tau_max, tau)
+        if len(self.tau) >= self.MAX_SAMPLES:  # keep the newest half: memory stays bounded
+            del self.tau[: self.MAX_SAMPLES // 2]
+            del self.wait[: self.MAX_SAMPLES // 2]
+        self.tau.append(tau)
+        self.wait.append(wait)
+
+    def summary(self) -> dict[str, float]:
+        if not self.tau:
+            return {"tau_mean_ms": 0.0, "tau_p50_ms": 0.0, "tau_p95_ms": 0.0, "tau_max_ms": 0.0,
+                    "queue_p50_ms": 0.0, "queue_p95_ms": 0.0}
+        t = np.asarray(self.tau) * 1e3
+        w = np.asarray(self.wait) * 1e3
+        return {"tau_mean_ms": self.tau_sum / self.n * 1e3,
+                "tau_p50_ms": float(np.percentile(t, 50)), "tau_p95_ms": float(np.percentile(t, 95)),
+                "tau_max_ms": self.tau_max * 1e3,
+                "queue_p50_ms": float(np.percentile(w, 50)), "queue_p95_ms": float(np.percentile(w, 95))}
+
+
+class StageRuntime:
+    """One hosted adapter with its counters."""
+
+    def __init__(self, adapter: StageAdapter) -> None:
+        self.adapter = adapter
+        self.name = adapter.name
+        self.received = 0
+        self.processed = 0
+        self.published: dict[str, int] = defaultdict(int)
+        self.errors = 0
+        self.error_causes: dict[str, int] = {}
+        self.times = ServiceStats()
+        self.last_frame = -1
+        self.checkpoint_index = 0
+
+    def record_error(self, cause: str) -> None:
+        self.errors += 1
+        key = cause[:200]
+        if key not in self.error_causes:
+            if len(self.error_causes) < 50:
+                self.error_causes[key] = 0
+            log.warning("stage %s: skipped a message: %s", self.name, cause)
+        if key in self.error_causes:
+            self.error_causes[key] += 1
+
+
+class Worker:
+    """The body of a worker process (also usable in-process by tests)."""
+
+    def __init__(self, spec: WorkerSpec) -> None:
+        self.spec = spec
+        self.stop_requested = False
+        self.stages: list[StageRuntime] = []
+        self.consumers: dict[str, list[int]] = defaultdict(list)  # topic -> stage indices
+        self.produced_inside: set[str] = set()
+        self.bus: Bus | None = None
+        self.queue: InputQueue | None = None
+        self._started = time.time()
+        self._proc = None
+
+    # ------------------------------------------------------------------ set-up
+    def build(self) -> None:
+        for s in self.spec.stages:
+            adapter = s.build()
+            adapter.run_dir = self.spec.run_dir  # type: ignore[attr-defined]
+            self.stages.append(StageRuntime(adapter))
+        for i, st in enumerate(self.stages):
+            for t in st.adapter.inputs:
+                self.consumers[t].append(i)
+        for i, st in enumerate(self.stages):
+            for t in st.adapter.outputs:
+                if any(j > i for j in self.consumers.get(t, [])):
+                    self.produced_inside.add(t)
+
+    def setup(self) -> None:
+        """Heavy initialisation of every adapter, then any state to resume from."""
+        for st in self.stages:
+            st.adapter.setup()
+            path = self.spec.resume_states.get(st.name)
+            if path:
+                from .checkpoint import load_state_file
+
+                st.adapter.load_state_dict(load_state_file(path))
+
+    @property
+    def external_inputs(self) -> list[str]:
+        seen: list[str] = []
+        for st in self.stages:
+            for t in st.adapter.inputs:
+                if t not in self.produced_inside and t not in seen:
+                    seen.append(t)
+        return seen
+
+    def connect(self) -> None:
+        session = open_session(self.spec.listen, self.spec.connect, self.spec.shm)
+        self.bus = Bus(session, self.spec.run, self.spec.lossless)
+        caps = {t: self.spec.capacities.get(t, self.spec.default_capacity) for t in self.external_inputs}
+        self.queue = InputQueue(caps, lossless=self.spec.lossless)
+        for t in self.external_inputs:
+            self.bus.subscribe(t, self.queue)
+        self.bus.subscribe_callback(key_for(self.spec.run, "control"), self._on_control)
+        for st in self.stages:
+            for t in st.adapter.outputs:
+                if t not in self.produced_inside or t in self.spec.publish_internal:
+                    self.bus.publisher(t)
+
+    def announce(self) -> None:
+        """Declare readiness once linked to every process of the run (or after a timeout)."""
+        assert self.bus is not None
+        wait_for_peers(self.bus.session, self.spec.expected_peers, timeout=10.0)
+        self._token = self.bus.session.liveliness().declare_token(
+            key_for(self.spec.run, f"alive/{self.spec.name}"))
+
+    def _on_control(self, sample: Any) -> None:
+        try:
+            msg = decode(sample.payload.to_bytes(), expected_type="control")
+        except MessageError as exc:
+            log.warning("worker %s: bad control message: %s", self.spec.name, exc)
+            return
+        target = msg.data.get("target")
+        if msg.data["command"] == "stop" and (target in (None, self.spec.name)):
+            self.stop_requested = True
+            if self.queue is not None and not self.spec.lossless:
+                self.queue.close()
+
+    # ------------------------------------------------------------------ processing
+    def _maybe_checkpoint(self, st: StageRuntime, frame: int) -> None:
+        """Save the stage's state as it is after every frame below the cut ``m * checkpoint_every``.
+
+        Every stage cuts at the same frame numbers, so the files of one cut form a consistent
+        snapshot of the whole pipeline (see checkpoint.py).
+        """
+        n = self.spec.checkpoint_every
+        if n <= 0 or frame // n <= st.checkpoint_index:
+            return
+        st.checkpoint_index = frame // n
+        from .checkpoint import save_stage_state
+
+        save_stage_state(self.spec.checkpoint_dir, st.checkpoint_index * n, st.name, st.adapter.state_dict())
+
+    def _run_stage(self, idx: int, topic: str, msgs: list[Message], received: list[float]) -> None:
+        st = self.stages[idx]
+        st.received += len(msgs)
+        self._maybe_checkpoint(st, min(m.frame for m in msgs))
+        started = time.time()
+        try:
+            if len(msgs) == 1:
+                outputs = st.adapter.process(topic, msgs[0])
+            else:
+                outputs = st.adapter.process_batch(topic, msgs)
+        except (StageInputError, MessageError, ValueError) as exc:
+            st.record_error(f"{type(exc).__name__}: {exc}")
+            if len(msgs) > 1:  # retry one by one so one bad frame does not cost its batch-mates
+                for m, r in zip(msgs, received, strict=True):
+                    self._run_stage(idx, topic, [m], [r])
+                st.received -= len(msgs)
+                st.errors -= 1
+            return
+        except Exception as exc:  # a bug must not kill the worker; count it, log the traceback once
+            cause = f"{type(exc).__name__}: {exc}"
+            if cause[:200] not in st.error_causes:
+                log.error("stage %s raised:\n%s", st.name, traceback.format_exc())
+            st.record_error(cause)
+            return
+        finished = time.time()
+        per_frame = (finished - started) / max(1, len(msgs))
+        for m, r in zip(msgs, received, strict=True):
+            st.times.add(per_frame, max(0.0, started - r))
+            st.last_frame = max(st.last_frame, m.frame)
+        st.processed += len(msgs)
+        self._emit(idx, outputs, st.name, dict(zip((m.frame for m in msgs), received, strict=False)),
+                   started, finished)
+
+    def _emit(self, idx: int, outputs: list[tuple[str, Message]], stage: str,
+              received_by_frame: dict[int, float], started: float, finished: float) -> None:
+        grouped: dict[str, list[Message]] = defaultdict(list)
+        for topic, out in outputs:
+            r = received_by_frame.get(out.frame, started)
+            out.trace.append((stage, r, started, finished))
+            if topic not in self.produced_inside or topic in self.spec.publish_internal:
+                self._publish(idx, topic, out)
+            if topic in self.produced_inside:
+                grouped[topic].append(out)
+        for topic, msgs in grouped.items():
+            for j in self.consumers[topic]:
+                if j > idx:
+                    now = time.time()
+                    self._run_stage(j, topic, msgs, [now] * len(msgs))
+
+    def _publish(self, idx: int, topic: str, msg: Message) -> None:
+        st = self.stages[idx]
+        try:
+            payload = encode(msg)
+        except MessageError as exc:
+            st.record_error(f"output not encodable: {exc}")
+            return
+        assert self.bus is not None
+        self.bus.put(topic, payload)
+        st.published[topic] += 1
+
+    def handle(self, topic: str, payload: bytes, received: float) -> None:
+        """Decode one external message (plus any same-topic messages waiting, for batching)."""
+        idxs = self.consumers.get(topic, [])
+        if not idxs:
+            return
+        first = idxs[0]
+        batch = [(payload, received)]
+        adapter = self.stages[first].adapter
+        if adapter.batchable and self.spec.max_batch > 1 and self.queue is not None:
+            batch += self.queue.get_more(topic, self.spec.max_batch - 1)
+        msgs: list[Message] = []
+        recv: list[float] = []
+        for p, r in batch:
+            try:
+                msgs.append(decode(p))
+                recv.append(r)
+            except MessageError as exc:
+                self.stages[first].received += 1
+                self.stages[first].record_error(f"MessageError on {topic}: {exc}")
+        if not msgs:
+            return
+        for i in idxs:
+            self._run_stage(i, topic, msgs, recv)
+
+    # ------------------------------------------------------------------ stats
+    def stats_messages(self, final: bool = False) -> list[Message]:
+        import psutil
+
+        if self._proc is None:
+            self._proc = psutil.Process()
+            self._proc.cpu_percent(None)
+        cpu = self._proc.cpu_percent(None)
+        rss = self._proc.memory_info().rss / 2**20
+        depth = self.queue.depth() if self.queue else {}
+        qstats = self.queue.stats if self.queue else {}
+        out = []
+        now = time.time()
+        for i, st in enumerate(self.stages):
+            inputs = {}
+            for t in st.adapter.inputs:
+                if t in qstats and self.consumers[t][0] == i:
+                    inputs[t] = {"received": qstats[t].received, "evicted": qstats[t].evicted,
+                                 "depth": depth.get(t, 0)}
+            try:
+                info = st.adapter.info()
+            except Exception as exc:  # info is diagnostic: never let it break stats
+                info = {"info_error": str(exc)}
+            data = {"stage": st.name, "worker": self.spec.name, "pid": os.getpid(), "time": now,
+                    "started": self._started, "received": st.received, "processed": st.processed,
+                    "published": dict(st.published), "errors": st.errors,
+                    "error_causes": dict(st.error_causes), "counters": dict(st.adapter.counters),
+                    "inputs": inputs, "outputs": list(st.adapter.outputs),
+                    "consumes": list(st.adapter.inputs), "last_frame": st.last_frame,
+                    "info": info, "cpu_percent": cpu, "rss_mb": rss, "final": final,
+                    "n_stages_in_worker": len(self.stages), **st.times.summary()}
+            out.append(Message("stats", 0, now, data))
+        return out
+
+    def publish_stats(self, final: bool = False) -> None:
+        assert self.bus is not None
+        for m in self.stats_messages(final):
+            try:
+                self.bus.session.put(key_for(self.spec.run, f"stats/{m.data['stage']}"),
+                                     encode(m, validate=False))
+            except Exception as exc:  # stats must never stop the work
+                log.warning("stats not published: %s", exc)
+
+    # ------------------------------------------------------------------ main loop
+    def loop(self) -> None:
+        assert self.queue is not None
+        period = 1.0 / self.spec.stats_hz
+        next_stats = time.monotonic()
+        while True:
+            item = self.queue.get(timeout=0.1)
+            if item is not None:
+                self.handle(*item)
+            elif self.stop_requested:
+                break
+            if time.monotonic() >= next_stats:
+                self.publish_stats()
+                next_stats = time.monotonic() + period
+            if self.stop_requested and not self.spec.lossless:
+                break
+
+    def shutdown(self) -> None:
+        for i, st in enumerate(self.stages):
+            try:
+                outs = st.adapter.flush()
+            except Exception as exc:
+                log.error("stage %s flush failed: %s", st.name, exc)
+                outs = []
+            now = time.time()
+            self._emit(i, outs, st.name, {}, now, now)
+        self.publish_stats(final=True)
+        # samples still in flight are lost if the session closes at once (research B.2)
+        time.sleep(0.3)
+        for st in self.stages:
+            try:
+                st.adapter.close()
+            except Exception as exc:
+                log.error("stage %s close failed: %s", st.name, exc)
+
+
+def run_worker(spec: WorkerSpec) -> None:
+    """Process entry: build, connect, announce readiness, loop until stopped, flush."""
+    logging.basicConfig(level=getattr(logging, spec.log_level.upper(), logging.WARNING),
+                        format=f"%(asctime)s {spec.name}[%(process)d] %(levelname)s %(message)s")
+    worker = Worker(spec)
+
+    def _stop(signum: int, _frame: Any) -> None:
+        worker.stop_requested = True
+        if worker.queue is not None and not spec.lossless:
+            worker.queue.close()
+
+    signal.signal(signal.SIGTERM, _stop)
+    signal.signal(signal.SIGINT, _stop)
+    try:
+        import torch
+
+        torch.set_num_threads(max(1, spec.threads))
+    except ImportError:
+        pass
+    worker.build()
+    worker.connect()
+    worker.setup()
+    worker.announce()
+    try:
+        worker.loop()
+    finally:
+        worker.shutdown()
+        if worker.queue is not None:
+            worker.queue.close()
+        assert worker.bus is not None
+        worker.bus.close()
+        worker.bus.session.close()

@@ -72,3 +72,15 @@ def latest_complete_cut(checkpoint_dir: str | Path, stages: list[str]) -> int | 
         if all((cut_dir(root, cut) / f"{s}.state").exists() for s in stages):
             return cut
     return None
+
+
+def latest_stage_state(checkpoint_dir: str | Path, stage: str) -> Path | None:
+    """The newest state file of one stage (used to restart a crashed worker), or None."""
+    root = Path(checkpoint_dir)
+    if not root.is_dir():
+        return None
+    for d in sorted((p for p in root.iterdir() if p.is_dir() and p.name.isdigit()), reverse=True):
+        f = d / f"{stage}.state"
+        if f.exists():
+            return f
+    return None

@@ -357,7 +357,7 @@ def attach(run: str, connect: list[str], refresh_s: float = 1.0, duration: float
     """Live table of a running pipeline's stats (``neoslam monitor``)."""
     from rich.live import Live
 
-    session = open_session(listen=[], connect=connect)
+    session = open_session(listen=[], connect=connect, mode="client")
     collector = StatsCollector()
     sub = session.declare_subscriber(key_for(run, "stats/**"), collector.on_sample)
     t_end = None if duration is None else time.monotonic() + duration

@@ -5,9 +5,10 @@ Topologies (DESIGN.md): ``pipeline`` runs one process per stage connected by zen
 discards frames that arrive while it is busy except the newest (an image ring of capacity 1).
 Both host the very same stage adapters.
 
-The supervisor (this process) is a zenoh peer too: it listens on a loopback port, every child
-listens on its own and connects to all processes started before it (a full mesh, so frames go
-directly from producer to consumer). It waits until every worker announced readiness, starts the
+Every child is a zenoh peer that listens on its own loopback port and connects to all processes
+started before it (a full mesh, so frames go directly from producer to consumer). The supervisor
+(this process) is a zenoh router on its own port, so a tool attaching in client mode to that one
+endpoint (``neoslam monitor RUN_DIR``, tests injecting messages) reaches every process. It waits until every worker announced readiness, starts the
 source, restarts a crashed worker (bounded, reported), detects the end of the run (source done and
 the pipeline drained), stops everything in order and completes ``report.json``.
 """
@@ -29,6 +30,7 @@ from typing import Any
 import yaml
 
 from .bus import free_port, key_for, open_session
+from .checkpoint import cut_dir, latest_complete_cut, latest_stage_state
 from .messages import Message, encode
 from .monitor import MonitorSpec, StatsCollector
 from .pipelines import PipelinePlan, build_plan, source_factory
@@ -80,6 +82,13 @@ class Supervisor:
         self.restarts: dict[str, int] = {}
         self.interrupts = 0
         self.resume = Path(resume) if resume else None
+        self.resume_cut: int | None = None
+        if self.resume is not None:
+            names = [s.name for s in self.plan.stages]
+            self.resume_cut = latest_complete_cut(self.resume / "checkpoint", names)
+            if self.resume_cut is None:
+                raise RunError(f"no complete checkpoint in {self.resume / 'checkpoint'} "
+                               f"(every stage of {names} must have saved the same cut)")
         host = cfg.bus.host
         order = ["supervisor", "monitor", *self.groups, "source"]
         self.endpoints = {n: f"tcp/{host}:{free_port(host)}" for n in order}
@@ -97,11 +106,10 @@ class Supervisor:
         listen, connect = self._links(wname)
         caps = dict(self.cfg.bus.capacity)
         resume_states = {}
-        if self.resume is not None:
+        if self.resume_cut is not None:
             for s in specs:
-                p = self.resume / "checkpoint" / f"{s.name}.state"
-                if p.exists():
-                    resume_states[s.name] = str(p)
+                resume_states[s.name] = str(cut_dir(self.resume / "checkpoint", self.resume_cut) /
+                                            f"{s.name}.state")
         return WorkerSpec(
             name=wname, stages=specs, run=self.run_id, run_dir=str(self.run_dir), lossless=self.lossless,
             listen=listen, connect=connect, shm=self.cfg.bus.shm, capacities=caps,
@@ -163,6 +171,9 @@ class Supervisor:
             for n in names:
                 p = self.procs.get(n)
                 if p is not None and not p.is_alive():
+                    if n in self.groups and self.restarts.get(n, 0) < self.cfg.run.max_restarts:
+                        self._restart(n, p.exitcode)
+                        continue
                     raise RunError(f"process {n!r} exited with code {p.exitcode} during start-up "
                                    f"(see its log above)")
             if time.monotonic() > deadline or self.interrupts:
@@ -189,11 +200,13 @@ class Supervisor:
         (self.run_dir / "config.yaml").write_text(yaml.safe_dump(self.cfg.model_dump(mode="json"),
                                                                  sort_keys=False))
         (self.run_dir / "endpoints.json").write_text(json.dumps(
-            {"run": self.run_id, "name": self.name, "connect": [self.endpoints["supervisor"]]}, indent=2))
+            {"run": self.run_id, "name": self.name, "connect": [self.endpoints["supervisor"]],
+             "mode": "client"}, indent=2))
         old_int = signal.signal(signal.SIGINT, self._on_signal)
         old_term = signal.signal(signal.SIGTERM, self._on_signal)
+        # a router, so that tools attaching in client mode (`neoslam monitor`) reach every process
         self.session = open_session([self.endpoints["supervisor"], *self.cfg.bus.listen],
-                                    list(self.cfg.bus.connect), self.cfg.bus.shm)
+                                    list(self.cfg.bus.connect), self.cfg.bus.shm, mode="router")
         self.collector = StatsCollector()
         stats_sub = self.session.declare_subscriber(key_for(self.run_id, "stats/**"),
                                                     self.collector.on_sample)
@@ -217,12 +230,7 @@ class Supervisor:
         return RunResult(self.run_dir, report, interrupted, dict(self.restarts))
 
     def _resume_frame(self) -> int:
-        if self.resume is None:
-            return 0
-        meta = self.resume / "checkpoint" / "checkpoint.json"
-        if not meta.exists():
-            raise RunError(f"no checkpoint in {self.resume} (expected {meta})")
-        return int(json.loads(meta.read_text())["next_frame"])
+        return self.resume_cut or 0
 
     def _stage_names(self) -> list[str]:
         return [s.name for specs in self.groups.values() for s in specs]
@@ -260,17 +268,21 @@ class Supervisor:
             if n >= self.cfg.run.max_restarts:
                 raise RunError(f"worker {w!r} died (exit code {p.exitcode}) and was already restarted "
                                f"{n} times; giving up")
-            log.warning("worker %s died with exit code %s; restarting (%d/%d)", w, p.exitcode, n + 1,
-                        self.cfg.run.max_restarts)
-            self.restarts[w] = n + 1
-            spec = self.worker_spec(w)
-            ckpt = self.run_dir / "checkpoint"
-            for s in spec.stages:  # come back with the last checkpointed state when there is one
-                path = ckpt / f"{s.name}.state"
-                if path.exists():
-                    spec.resume_states[s.name] = str(path)
-            self._start(w, worker_entry, spec)
+            self._restart(w, p.exitcode)
             self._wait_ready([w], self.cfg.run.startup_timeout)
+
+    def _restart(self, w: str, exitcode: int | None) -> None:
+        """Start worker ``w`` again, with each stage's newest checkpointed state when there is one."""
+        n = self.restarts.get(w, 0)
+        log.warning("worker %s died with exit code %s; restarting (%d/%d)", w, exitcode, n + 1,
+                    self.cfg.run.max_restarts)
+        self.restarts[w] = n + 1
+        spec = self.worker_spec(w)
+        for s in spec.stages:
+            path = latest_stage_state(self.run_dir / "checkpoint", s.name)
+            if path is not None:
+                spec.resume_states[s.name] = str(path)
+        self._start(w, worker_entry, spec)
 
     def _shutdown(self) -> None:
         """Stop the source, then the workers (they flush), then the monitor; nothing left behind."""

@@ -1,0 +1,180 @@
+"""The runtime end to end through real processes and real zenoh on loopback."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import psutil
+import pytest
+import yaml
+
+from neoslam_stream.bus import key_for, open_session
+from neoslam_stream.config import ConfigError, load_config
+from neoslam_stream.messages import Message, decode, encode
+from neoslam_stream.topology import run
+
+pytestmark = pytest.mark.zenoh
+
+TAUS = [50.0, 280.0, 20.0, 350.0]
+RATE = 10.0
+
+
+@pytest.mark.parametrize("topology", ["pipeline", "monolithic"])
+def test_emulated_paper_example(tmp_path, topology):
+    """The paper's worked example: eq. 2 predicts the output rate and the loss of each design."""
+    duration = 12.0
+    cfg = load_config(None, {
+        "run": {"pipeline": "emulated", "topology": topology, "mode": "realtime", "live": False,
+                "drain_s": 0.0},
+        "source": {"kind": "emulated", "rate": RATE, "pacing": "fixed", "duration": duration},
+        "emulated": {"tau_ms": TAUS}})
+    report = run(cfg, tmp_path).report
+    # expectations from the paper's equations, not from the code
+    if topology == "pipeline":
+        f_expected = 1.0 / (max(TAUS) / 1e3)  # min_i 1/tau_i
+        bottleneck = "stage4"
+    else:
+        f_expected = 1.0 / (sum(TAUS) / 1e3)  # one process serves the stages in sequence
+        bottleneck = "monolithic"
+    loss_expected = 1.0 - f_expected / RATE
+    assert report["topology"] == topology
+    assert report["f_in"] == pytest.approx(RATE, rel=0.05)
+    assert report["f_out"] == pytest.approx(f_expected, rel=0.05)
+    assert report["loss"] == pytest.approx(loss_expected, rel=0.05)
+    assert report["f_pipeline_predicted"] == pytest.approx(f_expected, rel=0.05)
+    assert report["predicted_loss"] == pytest.approx(loss_expected, rel=0.05)
+    assert report["bottleneck"] == bottleneck
+    for key in ("frames_in", "frames_out", "latency_p50_ms", "stages"):
+        assert key in report
+    assert (tmp_path / "timeline.csv").read_text().startswith("t_s,stage")
+
+
+def test_bad_config_names_the_field(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("run:\n  topology: ring\n")
+    with pytest.raises(ConfigError, match=r"run\.topology"):
+        load_config(bad)
+    bad.write_text("bus:\n  capacity: {image: 0}\n")
+    with pytest.raises(ConfigError, match=r"bus\.capacity"):
+        load_config(bad)
+    bad.write_text("nonsense: 1\n")
+    with pytest.raises(ConfigError, match="nonsense"):
+        load_config(bad)
+
+
+# ---------------------------------------------------------------------------------------------
+def _start_run(tmp_path: Path, frames: int, rate: float, taus: list[float], mode: str = "lossless",
+               extra: dict | None = None) -> subprocess.Popen:
+    cfg = {"run": {"pipeline": "emulated", "topology": "pipeline", "mode": mode, "live": False,
+                   "startup_timeout": 120},
+           "source": {"kind": "emulated", "params": {"frames": frames}, "rate": rate, "pacing": "fixed"},
+           "emulated": {"tau_ms": taus}}
+    if extra:
+        for k, v in extra.items():
+            cfg.setdefault(k, {}).update(v)
+    path = tmp_path / "cfg.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    return subprocess.Popen([sys.executable, "-m", "neoslam_stream.cli", "run", "-c", str(path), "--out",
+                             str(tmp_path / "run")], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+
+
+def _attach(tmp_path: Path, timeout: float = 60.0):
+    ep_file = tmp_path / "run" / "endpoints.json"
+    deadline = time.monotonic() + timeout
+    while not ep_file.exists():
+        assert time.monotonic() < deadline, "run did not start"
+        time.sleep(0.1)
+    ep = json.loads(ep_file.read_text())
+    session = open_session(listen=[], connect=ep["connect"], mode="client")
+    time.sleep(0.5)
+    return session, ep["run"]
+
+
+def _wait_stats(session, run_id: str, stage: str, timeout: float = 120.0) -> dict:
+    got = {}
+    sub = session.declare_subscriber(key_for(run_id, f"stats/{stage}"),
+                                     lambda s: got.update(decode(s.payload.to_bytes()).data))
+    deadline = time.monotonic() + timeout
+    while not got and time.monotonic() < deadline:
+        time.sleep(0.05)
+    sub.undeclare()
+    assert got, f"no stats from {stage}"
+    return got
+
+
+def _finish(proc: subprocess.Popen, timeout: float = 120.0) -> str:
+    out, _ = proc.communicate(timeout=timeout)
+    return out
+
+
+def test_malformed_payload_is_counted_and_skipped(tmp_path):
+    frames = 60
+    proc = _start_run(tmp_path, frames=frames, rate=20.0, taus=[5.0, 5.0])
+    session, run_id = _attach(tmp_path)
+    try:
+        _wait_stats(session, run_id, "stage1")
+        key = key_for(run_id, "image")
+        session.put(key, b"\x00garbage")  # not msgpack
+        session.put(key, encode(Message("control", 0, 0.0, {"command": "noop"})))  # wrong type for a stage
+        session.put(key, encode(Message("image", 10**6, 0.0, {"image": np.zeros((2, 2, 2, 2), np.uint8)}),
+                                validate=False))  # wrong shape
+    finally:
+        session.close()
+    out = _finish(proc)
+    assert proc.returncode == 0, out
+    report = json.loads((tmp_path / "run" / "report.json").read_text())
+    s1 = report["stages"]["stage1"]
+    assert s1["errors"] >= 2, s1  # the garbage and the 4-D image (the control msg has no schema issue)
+    assert any("MessageError" in c for c in s1["error_causes"])
+    # every real frame still went through
+    assert report["frames_in"] == frames
+    assert report["frames_out"] == frames
+    assert report["loss"] == 0.0
+
+
+def test_sigkilled_worker_is_restarted_and_run_completes(tmp_path):
+    frames = 120
+    proc = _start_run(tmp_path, frames=frames, rate=20.0, taus=[5.0, 5.0, 5.0], mode="realtime")
+    session, run_id = _attach(tmp_path)
+    try:
+        _wait_stats(session, run_id, "source")  # the run is under way
+        st = _wait_stats(session, run_id, "stage2")
+        time.sleep(1.0)
+        os.kill(st["pid"], signal.SIGKILL)
+    finally:
+        session.close()
+    out = _finish(proc)
+    assert proc.returncode == 0, out
+    report = json.loads((tmp_path / "run" / "report.json").read_text())
+    assert report["restarts"] == {"stage2": 1}
+    assert report["frames_in"] == frames
+    # the run went on after the restart: the last stage saw frames after the kill
+    assert report["stages"]["stage3"]["processed"] > 0
+    assert report["frames_out"] > 0
+
+
+def test_sigint_stops_everything_and_writes_the_report(tmp_path):
+    proc = _start_run(tmp_path, frames=100000, rate=20.0, taus=[5.0, 5.0], mode="realtime")
+    session, run_id = _attach(tmp_path)
+    try:
+        _wait_stats(session, run_id, "stage2")
+    finally:
+        session.close()
+    children = psutil.Process(proc.pid).children(recursive=True)
+    assert len(children) >= 4  # monitor, 2 workers, source
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGINT)
+    _finish(proc, timeout=60)
+    assert proc.returncode == 130
+    report = json.loads((tmp_path / "run" / "report.json").read_text())
+    assert report["interrupted"] is True
+    assert report["frames_in"] > 0 and report["stages"]["stage2"]["processed"] > 0
+    time.sleep(0.5)
+    alive = [c for c in children if c.is_running() and c.status() != psutil.STATUS_ZOMBIE]
+    assert alive == [], f"orphans left: {alive}"

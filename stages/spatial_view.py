@@ -1,0 +1,276 @@
+"""Stage D: spatial-view cells — intervals of similar SDRs and loop closure against older intervals.
+
+The paper's formulation, per winner-cell SDR y_t:
+
+1. Intervals. The current interval k has a union SDR Y_k and spans [start, end].
+   alpha(t) = |Y_curr & y_t|. If alpha(t) >= theta_alpha and end - start < theta_rho the interval is
+   extended (end += 1, Y_curr |= y_t); otherwise a new interval [t, t] with Y = y_t is opened. An
+   interval therefore covers at most theta_rho + 1 frames.
+2. Scores s_k = |Y_k & y_t| for the intervals k = 0 .. K-1-omega (K intervals exist after step 1;
+   the omega = ``exclude_recent_intervals`` newest, the current one included, are never candidates).
+3. Candidates are s_k > theta_sigma (strictly); the best is k* = argmax, the lowest index on ties.
+4. Template tau(t): with a candidate, the template of interval k* (a loop closure); else, if a new
+   interval was opened, a new template id (consecutive from 0); else the current template.
+   Each interval keeps the template it got when it was opened.
+
+Differences from the ROS 2 NeoSLAM on purpose: interval k's template is interval k's (the ROS 2
+code returns the template of the interval *before* the match, because interval 0 never gets a map
+row), and the first frame opens interval 0 like any other.
+
+Speed: scores come from an inverted index bit -> intervals containing it (posting lists, sorted by
+interval id because intervals are created in order and unions only grow), summed by a numba loop
+over the ~512 postings of y_t, so one frame costs O(sum of posting lengths), never a Python loop
+over K. The union of each interval is kept as a pyroaring BitMap as the paper describes.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numba import njit
+from pydantic import BaseModel, ConfigDict, Field
+from pyroaring import BitMap
+
+from neoslam_stream.messages import Message
+from neoslam_stream.stage import Output, StageAdapter, StageInputError
+
+
+class SpatialViewConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    theta_alpha: int = Field(384, ge=0)
+    theta_rho: int = Field(3, ge=0)
+    theta_sigma: int = Field(470, ge=0)
+    exclude_recent_intervals: int = Field(3, ge=0)
+    sdr_size: int = Field(65536, ge=1)
+
+
+BLOCK = 64  # entries per posting block
+
+
+@njit(cache=True)
+def _append_postings(pool, nxt, head, tail, fill, n_blocks, bits, interval):  # pragma: no cover
+    """Append ``interval`` to the posting list of every bit; returns the new block count.
+
+    The caller guarantees room for one new block per bit.
+    """
+    for b in bits:
+        t = tail[b]
+        if t == -1 or fill[b] == BLOCK:
+            blk = n_blocks
+            n_blocks += 1
+            nxt[blk] = -1
+            if t == -1:
+                head[b] = blk
+            else:
+                nxt[t] = blk
+            tail[b] = blk
+            fill[b] = 0
+            t = blk
+        pool[t, fill[b]] = interval
+        fill[b] += 1
+    return n_blocks
+
+
+@njit(cache=True)
+def _scores(pool, nxt, head, tail, fill, bits, limit, out):  # pragma: no cover - compiled
+    """out[k] += 1 for every interval k < limit whose union holds a bit of ``bits``."""
+    for b in bits:
+        blk = head[b]
+        while blk != -1:
+            n = fill[b] if blk == tail[b] else BLOCK
+            row = pool[blk]
+            for i in range(n):
+                k = row[i]
+                if k >= limit:
+                    break
+                out[k] += 1
+            else:
+                blk = nxt[blk]
+                continue
+            break  # posting lists are sorted by interval id: the rest is newer
+
+
+class SpatialViewCells:
+    """SDR -> (template id, is_loop_closure, best interval, best score). See the module docstring."""
+
+    def __init__(self, theta_alpha: int = 384, theta_rho: int = 3, theta_sigma: int = 470,
+                 exclude_recent_intervals: int = 3, sdr_size: int = 65536) -> None:
+        self.theta_alpha = theta_alpha
+        self.theta_rho = theta_rho
+        self.theta_sigma = theta_sigma
+        self.omega = exclude_recent_intervals
+        self.sdr_size = sdr_size
+        self._init_storage(1024)
+        self.unions: list[BitMap] = []
+        self.interval_start: list[int] = []
+        self.interval_end: list[int] = []
+        self.interval_template: list[int] = []
+        self.n_templates = 0
+        self.current_template = -1
+        self.t = 0
+        self._scores = np.zeros(1024, dtype=np.int32)
+
+    def _init_storage(self, blocks: int) -> None:
+        # posting lists as linked blocks of BLOCK entries in one pool: memory grows with the number
+        # of postings only, whatever the distribution of bits
+        self._pool = np.zeros((blocks, BLOCK), dtype=np.int32)
+        self._next = np.full(blocks, -1, dtype=np.int32)
+        self._head = np.full(self.sdr_size, -1, dtype=np.int32)
+        self._tail = np.full(self.sdr_size, -1, dtype=np.int32)
+        self._fill = np.zeros(self.sdr_size, dtype=np.int32)
+        self._n_blocks = 0
+
+    def _post_bits(self, bits: np.ndarray, interval: int) -> None:
+        need = self._n_blocks + len(bits)
+        if need > self._pool.shape[0]:
+            cap = max(need, 2 * self._pool.shape[0])
+            pool = np.zeros((cap, BLOCK), dtype=np.int32)
+            pool[: self._n_blocks] = self._pool[: self._n_blocks]
+            nxt = np.full(cap, -1, dtype=np.int32)
+            nxt[: self._n_blocks] = self._next[: self._n_blocks]
+            self._pool, self._next = pool, nxt
+        self._n_blocks = _append_postings(self._pool, self._next, self._head, self._tail, self._fill,
+                                          self._n_blocks, bits, interval)
+
+    @property
+    def n_intervals(self) -> int:
+        return len(self.unions)
+
+    def _validate(self, sdr: np.ndarray) -> np.ndarray:
+        a = np.asarray(sdr)
+        if a.ndim != 1:
+            raise ValueError(f"SDR must be a 1-D array of cell indices, got shape {a.shape}")
+        if a.size and (a.min() < 0 or a.max() >= self.sdr_size):
+            raise ValueError(f"SDR indices must lie in [0, {self.sdr_size})")
+        return np.unique(a.astype(np.int64)).astype(np.int32)
+
+    def compute(self, sdr: np.ndarray) -> dict[str, Any]:
+        """Process y_t; returns template id, loop-closure flag, best interval and score."""
+        y = self._validate(sdr)
+        y_bm = BitMap(y)
+        new_interval = False
+        if not self.unions:
+            new_interval = True
+        else:
+            cur = self.n_intervals - 1
+            alpha = self.unions[cur].intersection_cardinality(y_bm)
+            duration = self.interval_end[cur] - self.interval_start[cur]
+            if alpha >= self.theta_alpha and duration < self.theta_rho:
+                added = y_bm - self.unions[cur]
+                self.unions[cur] |= y_bm
+                self.interval_end[cur] = self.t
+                if len(added):
+                    self._post_bits(np.fromiter(added, dtype=np.int32, count=len(added)), cur)
+            else:
+                new_interval = True
+        if new_interval:
+            k = self.n_intervals
+            self.unions.append(y_bm)
+            self.interval_start.append(self.t)
+            self.interval_end.append(self.t)
+            self.interval_template.append(-1)
+            self._post_bits(y, k)
+        limit = self.n_intervals - self.omega
+        best, best_score = -1, 0
+        if limit > 0:
+            if self._scores.shape[0] < limit:
+                self._scores = np.zeros(max(limit, 2 * self._scores.shape[0]), dtype=np.int32)
+            scores = self._scores[:limit]
+            scores[:] = 0
+            _scores(self._pool, self._next, self._head, self._tail, self._fill, y, limit, scores)
+            best = int(np.argmax(scores))  # first maximum = lowest index
+            best_score = int(scores[best])
+        loop = best >= 0 and best_score > self.theta_sigma
+        if loop:
+            template = self.interval_template[best]
+        elif new_interval:
+            template = self.n_templates
+            self.n_templates += 1
+        else:
+            template = self.current_template
+        if new_interval:
+            self.interval_template[-1] = template
+        self.current_template = template
+        self.t += 1
+        return {"id": template, "is_loop_closure": bool(loop), "best_interval": best if loop else -1,
+                "best_score": best_score, "relative_rad": 0.0, "interval": self.n_intervals - 1}
+
+    # ---------------------------------------------------------------- state
+    def state_dict(self) -> dict[str, Any]:
+        return {"params": [self.theta_alpha, self.theta_rho, self.theta_sigma, self.omega, self.sdr_size],
+                "unions": [np.asarray(u.to_array(), dtype=np.uint32) for u in self.unions],
+                "start": np.asarray(self.interval_start, np.int64), "end": np.asarray(self.interval_end, np.int64),
+                "template": np.asarray(self.interval_template, np.int64), "n_templates": self.n_templates,
+                "current_template": self.current_template, "t": self.t}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        (self.theta_alpha, self.theta_rho, self.theta_sigma, self.omega, self.sdr_size) = state["params"]
+        self._init_storage(1024)
+        self.unions = []
+        for k, arr in enumerate(state["unions"]):
+            a = np.asarray(arr, dtype=np.int32)
+            self.unions.append(BitMap(a))
+            self._post_bits(a, k)
+        self.interval_start = [int(x) for x in state["start"]]
+        self.interval_end = [int(x) for x in state["end"]]
+        self.interval_template = [int(x) for x in state["template"]]
+        self.n_templates = int(state["n_templates"])
+        self.current_template = int(state["current_template"])
+        self.t = int(state["t"])
+
+
+class SpatialViewStage(StageAdapter):
+    """``sdr`` -> ``visual_template``; writes templates.csv into the run folder at the end."""
+
+    inputs = ("sdr",)
+    outputs = ("visual_template",)
+
+    def __init__(self, **params: Any) -> None:
+        super().__init__()
+        self.config = SpatialViewConfig(**params)
+        self.cells = SpatialViewCells(**self.config.model_dump())
+        self.rows: list[tuple[int, float, int, int, int, int]] = []
+        self.loops = 0
+
+    def process(self, topic: str, msg: Message) -> Output:
+        try:
+            res = self.cells.compute(msg["cells"])
+        except ValueError as exc:
+            raise StageInputError(str(exc)) from None
+        self.loops += res["is_loop_closure"]
+        self.rows.append((msg.frame, msg.stamp, res["id"], int(res["is_loop_closure"]), res["best_interval"],
+                          res["best_score"]))
+        data = {k: res[k] for k in ("id", "is_loop_closure", "best_interval", "relative_rad")}
+        data["best_score"] = float(res["best_score"])
+        return [("visual_template", msg.derive("visual_template", data))]
+
+    def flush(self) -> Output:
+        run_dir = getattr(self, "run_dir", None)
+        if run_dir:
+            write_templates_csv(f"{run_dir}/templates.csv", self.rows)
+        return []
+
+    def info(self) -> dict[str, Any]:
+        return {"intervals": self.cells.n_intervals, "templates": self.cells.n_templates,
+                "loop_closures": self.loops}
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"cells": self.cells.state_dict(), "rows": [list(r) for r in self.rows], "loops": self.loops}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.cells.load_state_dict(state["cells"])
+        self.rows = [tuple(r) for r in state["rows"]]
+        self.loops = int(state["loops"])
+
+
+def write_templates_csv(path: str, rows: list) -> None:
+    with open(path, "w") as fh:
+        fh.write("frame,stamp,template_id,is_loop_closure,best_interval,best_score\n")
+        for r in rows:
+            fh.write(f"{r[0]},{r[1]:.6f},{r[2]},{r[3]},{r[4]},{r[5]}\n")
+
+
+def make_stage(**params: Any) -> SpatialViewStage:
+    return SpatialViewStage(**params)

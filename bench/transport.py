@@ -36,6 +36,7 @@ def subscriber(ep: str, shm: bool, n_expected: int, q: mp.Queue, ready: mp.Event
     bus.subscribe("x", inq)
     ready.set()
     got, lat, t_first, t_last, nbytes = 0, [], None, None, 0
+    t_last_mono = time.monotonic()
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:
         item = inq.get(timeout=1.0)

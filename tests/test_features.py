@@ -1,0 +1,150 @@
+"""Stage A: stride, crop semantics, output shape, pre-ReLU output, weight loading."""
+
+import numpy as np
+import pytest
+import torch
+
+from neoslam_stream.messages import Message
+from neoslam_stream.stage import StageInputError
+from stages import features as F
+
+
+@pytest.fixture(scope="module")
+def rand_fx():
+    return F.VisualFeatureExtractor(backbone="random_alexnet", seed=1)
+
+
+def test_stride_keeps_0_s_2s(rand_fx):
+    fx = F.VisualFeatureExtractor(backbone="random_alexnet", frame_stride=4)
+    assert [f for f in range(13) if fx.keep(f)] == [0, 4, 8, 12]
+
+
+def test_crop_x_is_columns_y_is_rows():
+    fx = F.VisualFeatureExtractor(backbone="random_alexnet", crop_image=True, x_min=2, x_max=5, y_min=1, y_max=3)
+    img = np.arange(6 * 8).reshape(6, 8)  # 6 rows, 8 columns
+    out = fx.crop_array(img)
+    assert out.shape == (2, 3)  # rows [1,3), columns [2,5)
+    assert out[0, 0] == img[1, 2] and out[-1, -1] == img[2, 4]
+
+
+def test_crop_disabled_leaves_image_whole():
+    fx = F.VisualFeatureExtractor(backbone="random_alexnet", crop_image=False, x_min=2, x_max=5)
+    img = np.zeros((6, 8))
+    assert fx.crop_array(img).shape == (6, 8)
+
+
+def test_crop_outside_image_is_a_clear_error():
+    fx = F.VisualFeatureExtractor(backbone="random_alexnet", crop_image=True, x_min=0, x_max=100)
+    with pytest.raises(StageInputError, match="does not fit"):
+        fx.crop_array(np.zeros((10, 20, 3), np.uint8))
+
+
+def test_output_is_conv3_pre_relu_64896(rand_fx):
+    img = np.random.default_rng(0).integers(0, 256, (120, 160, 3), dtype=np.uint8)
+    f = rand_fx.extract(img)
+    assert f.shape == (384 * 13 * 13,) and f.dtype == np.float32
+    assert (f < 0).any() and (f > 0).any()  # before the ReLU: negatives exist
+
+
+def test_channel_major_flattening_matches_the_network(rand_fx):
+    img = np.random.default_rng(1).integers(0, 256, (100, 100, 3), dtype=np.uint8)
+    x = torch.from_numpy(rand_fx.preprocess(img))[None]
+    with torch.no_grad():
+        y = rand_fx.net(x)[0].numpy()  # (384, 13, 13)
+    f = rand_fx.extract(img)
+    c, h, w = 7, 5, 11
+    assert f[c * 169 + h * 13 + w] == pytest.approx(y[c, h, w], rel=1e-5, abs=1e-6)
+
+
+def test_grey_mode_copies_grey_into_three_channels(rand_fx):
+    img = np.random.default_rng(2).integers(0, 256, (50, 60, 3), dtype=np.uint8)
+    x = rand_fx.preprocess(img)
+    # after per-channel normalisation, undoing it must give identical channels
+    raw = x * F.IMAGENET_STD[:, None, None] + F.IMAGENET_MEAN[:, None, None]
+    np.testing.assert_allclose(raw[0], raw[1], atol=1e-6)
+    np.testing.assert_allclose(raw[1], raw[2], atol=1e-6)
+
+
+def _torchvision_state(seed=0):
+    g = torch.Generator().manual_seed(seed)
+    shapes = {"features.0": (64, 3, 11, 11), "features.3": (192, 64, 5, 5), "features.6": (384, 192, 3, 3),
+              "features.8": (256, 384, 3, 3), "features.10": (256, 256, 3, 3),
+              "classifier.1": (4096, 9216), "classifier.4": (4096, 4096), "classifier.6": (1000, 4096)}
+    state = {}
+    for name, shp in shapes.items():
+        if name.startswith("classifier"):
+            shp = (8, 8)  # small: their content is irrelevant, their presence is what matters
+        state[f"{name}.weight"] = torch.randn(shp, generator=g) * 0.01
+        state[f"{name}.bias"] = torch.randn(shp[0], generator=g) * 0.01
+    return state
+
+
+def test_loads_torchvision_state_dict_from_path(tmp_path):
+    state = _torchvision_state()
+    path = tmp_path / "alexnet-owt-7be5be79.pth"
+    torch.save(state, path)
+    fx = F.VisualFeatureExtractor(backbone="alexnet", weights_path=str(path))
+    assert fx.backbone == "alexnet"
+    torch.testing.assert_close(fx.net.conv2.weight, state["features.3.weight"])
+    # the first output value equals a hand computation of conv3(pool(relu(conv2(...))))
+    img = np.full((64, 64, 3), 128, np.uint8)
+    x = torch.from_numpy(fx.preprocess(img))[None]
+    nn = torch.nn.functional
+    y = nn.max_pool2d(torch.relu(nn.conv2d(x, state["features.0.weight"], state["features.0.bias"], 4, 2)), 3, 2)
+    y = nn.max_pool2d(torch.relu(nn.conv2d(y, state["features.3.weight"], state["features.3.bias"], 1, 2)), 3, 2)
+    y = nn.conv2d(y, state["features.6.weight"], state["features.6.bias"], 1, 1)
+    np.testing.assert_allclose(fx.extract(img), y.flatten().numpy(), rtol=1e-4, atol=1e-5)
+
+
+def test_loads_conv_only_file_and_hub_cache(tmp_path, monkeypatch):
+    state = {k: v for k, v in _torchvision_state(3).items() if k.split(".")[1] in ("0", "3", "6")}
+    hub = tmp_path / "hub" / "checkpoints"
+    hub.mkdir(parents=True)
+    torch.save(state, hub / "alexnet-owt-4df8aa71.pth")
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path))
+    fx = F.VisualFeatureExtractor(backbone="auto")
+    assert fx.backbone == "alexnet" and "4df8aa71" in fx.weights_source
+    torch.testing.assert_close(fx.net.conv3.bias, state["features.6.bias"])
+
+
+def test_missing_weights_error_says_how_to_provide_them(tmp_path, monkeypatch):
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path))
+    with pytest.raises(FileNotFoundError, match="weights_path") as exc:
+        F.VisualFeatureExtractor(backbone="alexnet")
+    assert "hub" in str(exc.value) and "download_weights" in str(exc.value)
+
+
+def test_auto_falls_back_to_efficientnet_lite0(tmp_path, monkeypatch):
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path))
+    fx = F.VisualFeatureExtractor(backbone="auto")
+    assert fx.backbone == "efficientnet_lite0"
+    f = fx.extract(np.random.default_rng(0).integers(0, 256, (60, 80, 3), dtype=np.uint8))
+    assert f.shape == (fx.output_dim,) and np.isfinite(f).all()
+
+
+def test_efficientnet_state_dict_loads_strictly():
+    net = F.EfficientNetLite0()
+    state = torch.load(F.efficientnet_lite0_weights(), map_location="cpu", weights_only=True)
+    missing = net.load_state_dict(state, strict=True)
+    assert not missing.missing_keys and not missing.unexpected_keys
+
+
+def test_stage_strides_and_reports_backbone():
+    st = F.make_stage(backbone="random_alexnet", frame_stride=2)
+    st.setup()
+    msgs = [Message("image", i, i * 0.1, {"image": np.zeros((32, 32, 3), np.uint8), "encoding": "rgb8"})
+            for i in range(5)]
+    out = st.process_batch("image", msgs)
+    assert [m.frame for _, m in out] == [0, 2, 4]
+    assert st.counters["strided"] == 2
+    info = st.info()
+    assert info["backbone"] == "random_alexnet" and info["backbone_is_random"] is True
+    assert out[0][1]["backbone"] == "random_alexnet"
+
+
+def test_stage_rejects_corrupt_jpeg():
+    st = F.make_stage(backbone="random_alexnet")
+    st.setup()
+    bad = Message("image", 0, 0.0, {"compressed": b"\xff\xd8\xff\xe0garbage", "format": "jpeg"})
+    with pytest.raises(StageInputError, match="corrupt"):
+        st.process("image", bad)

@@ -1,0 +1,97 @@
+"""Stage B: sLSBH by hand, tie rule, projection determinism, the .bin format."""
+
+import numpy as np
+import pytest
+
+from neoslam_stream.messages import Message
+from stages import projector as P
+
+
+def test_slsbh_hand_made_vector():
+    # 8 dims, s = 25 %: k = 2 largest -> bits j, 2 smallest -> bits 8 + j
+    d = np.array([0.5, -3.0, 9.0, 1.0, -1.0, 7.0, 0.0, -2.0], dtype=np.float32)
+    bits = P.slsbh(d, 0.25)
+    assert bits.tolist() == [2, 5, 8 + 1, 8 + 7]
+
+
+def test_slsbh_tie_rule_lower_index_wins():
+    d = np.array([1.0, 5.0, 5.0, 5.0, -4.0, -4.0, -4.0, 0.0], dtype=np.float32)
+    bits = P.slsbh(d, 0.25)
+    # largest: three 5.0 tie for two places -> indices 1 and 2; smallest: -4.0 x3 -> 4 and 5
+    assert bits.tolist() == [1, 2, 8 + 4, 8 + 5]
+
+
+def test_slsbh_exactly_512_of_2048_top_and_bottom_quartiles():
+    rng = np.random.default_rng(0)
+    d = rng.standard_normal(1024).astype(np.float32)
+    bits = P.slsbh(d)
+    assert bits.size == 512 and bits.dtype == np.uint16 and np.all(np.diff(bits.astype(int)) > 0)
+    top = bits[bits < 1024]
+    bottom = bits[bits >= 1024] - 1024
+    assert top.size == 256 and bottom.size == 256
+    # the paper's definition: the top quartile's smallest value exceeds every unmarked value
+    rest = np.setdiff1d(np.arange(1024), top)
+    assert d[top].min() > d[rest].max()
+    rest = np.setdiff1d(np.arange(1024), bottom)
+    assert d[bottom].max() < d[rest].min()
+    # and not the ROS 2 C++ behaviour (smallest quartile in the first half)
+    assert set(top).isdisjoint(set(np.argsort(d)[:256]))
+
+
+def test_gaussian_matrix_is_seeded_standard_normal_float32():
+    a = P.gaussian_matrix(300, seed=5, m=64)
+    b = P.gaussian_matrix(300, seed=5, m=64)
+    c = P.gaussian_matrix(300, seed=6, m=64)
+    assert a.dtype == np.float32 and a.shape == (300, 64)
+    np.testing.assert_array_equal(a, b)
+    assert not np.array_equal(a, c)
+    assert abs(a.mean()) < 0.02 and abs(a.std() - 1) < 0.02
+
+
+def test_projection_is_p_times_f():
+    bp = P.BinaryProjector(input_dim=50, seed=3)
+    f = np.random.default_rng(1).standard_normal(50).astype(np.float32)
+    expected = np.array([np.dot(bp.matrix[:, j], f) for j in range(1024)], dtype=np.float64)
+    np.testing.assert_allclose(bp.project(f), expected, rtol=1e-4, atol=1e-4)
+
+
+def test_bin_round_trip_and_size_check(tmp_path):
+    m = P.gaussian_matrix(40, seed=1)
+    path = tmp_path / "randomMatrix.bin"
+    P.save_bin(m, path)
+    assert path.stat().st_size == 40 * 1024 * 4  # no header
+    loaded = P.load_bin(path, 40)
+    np.testing.assert_array_equal(loaded, m)
+    raw = np.fromfile(path, dtype="<f4")
+    assert raw[1025] == m[1, 1]  # row-major (n, 1024)
+    with pytest.raises(ValueError, match="bytes"):
+        P.load_bin(path, 41)
+    bp = P.BinaryProjector(input_dim=40, matrix_path=str(path))
+    np.testing.assert_array_equal(bp.matrix, m)
+
+
+def test_full_size_bin_has_the_ros2_byte_count():
+    assert 64896 * 1024 * 4 == 265_814_016
+
+
+def test_sparse_projection_density_and_values():
+    sp = P.sparse_matrix(10000, seed=0)
+    density = sp.nnz / (10000 * 1024)
+    assert density == pytest.approx(1 / np.sqrt(10000), rel=0.05)
+    vals = np.unique(np.abs(sp.data))
+    np.testing.assert_allclose(vals, [np.sqrt(np.sqrt(10000))], rtol=1e-6)
+
+
+def test_stage_batches_and_validates_length():
+    st = P.make_stage(input_dim=100, seed=2)
+    st.setup()
+    rng = np.random.default_rng(0)
+    msgs = [Message("visual_features", i, 0.0, {"features": rng.standard_normal(100).astype(np.float32)})
+            for i in range(3)]
+    out = st.process_batch("visual_features", msgs)
+    assert len(out) == 3 and all(m["bits"].size == 512 for _, m in out)
+    np.testing.assert_array_equal(out[1][1]["bits"], st.projector.bits(msgs[1]["features"]))
+    from neoslam_stream.stage import StageInputError
+
+    with pytest.raises(StageInputError):
+        st.process("visual_features", Message("visual_features", 9, 0.0, {"features": np.zeros(7, np.float32)}))

@@ -1,0 +1,129 @@
+"""Stage D on constructed SDRs; expected values worked by hand from the paper's definitions."""
+
+import numpy as np
+import pytest
+
+from neoslam_stream.messages import Message
+from stages.spatial_view import SpatialViewCells, make_stage
+
+
+def sdr(*bits):
+    return np.array(bits, dtype=np.uint32)
+
+
+def block(i, width=6):
+    """A distinct SDR per i (disjoint bits)."""
+    return np.arange(i * width, (i + 1) * width, dtype=np.uint32)
+
+
+def svc(**kw):
+    params = dict(theta_alpha=3, theta_rho=2, theta_sigma=4, exclude_recent_intervals=1, sdr_size=256)
+    params.update(kw)
+    return SpatialViewCells(**params)
+
+
+def test_similar_sdr_extends_the_interval():
+    c = svc()
+    r0 = c.compute(sdr(0, 1, 2, 3))
+    r1 = c.compute(sdr(0, 1, 2, 9))  # alpha = 3 >= theta_alpha, duration 0 < theta_rho
+    assert c.n_intervals == 1 and r0["id"] == r1["id"] == 0
+    assert sorted(c.unions[0]) == [0, 1, 2, 3, 9]  # the union grows
+
+
+def test_dissimilar_sdr_opens_a_new_interval_and_template():
+    c = svc()
+    c.compute(block(0))
+    r = c.compute(block(1))  # alpha = 0
+    assert c.n_intervals == 2 and r["id"] == 1 and not r["is_loop_closure"]
+
+
+def test_interval_closes_after_theta_rho():
+    c = svc(exclude_recent_intervals=2)
+    a = block(0)
+    for _ in range(3):  # durations 0 and 1 extend; the interval spans frames 0..2 = theta_rho + 1
+        c.compute(a)
+    assert c.n_intervals == 1 and (c.interval_start[0], c.interval_end[0]) == (0, 2)
+    r = c.compute(a)  # duration 2 is not < theta_rho -> new interval; interval 0 is excluded (omega 2)
+    assert c.n_intervals == 2 and r["id"] == 1 and not r["is_loop_closure"]
+
+
+def test_no_match_inside_the_excluded_recent_intervals():
+    c = svc(exclude_recent_intervals=3)
+    for i in range(3):
+        c.compute(block(i))
+    r = c.compute(block(0))  # 4 intervals now; candidates k < 4 - 3 = 1: interval 0 is one
+    assert r["is_loop_closure"] and r["best_interval"] == 0
+    c = svc(exclude_recent_intervals=3)
+    for i in range(2):
+        c.compute(block(i))
+    r = c.compute(block(0))  # 3 intervals; candidates k < 0: none, although interval 0 is identical
+    assert not r["is_loop_closure"] and r["id"] == 2
+
+
+def test_loop_closure_reuses_the_template_of_the_matched_interval_not_its_neighbour():
+    c = svc()
+    ids = [c.compute(block(i))["id"] for i in range(5)]
+    assert ids == [0, 1, 2, 3, 4]  # consecutive from 0
+    r = c.compute(block(2))
+    assert r["is_loop_closure"] and r["best_interval"] == 2 and r["id"] == 2
+    assert r["best_score"] == 6
+    # the interval opened by the revisit keeps the matched template
+    assert c.interval_template[-1] == 2
+    r = c.compute(block(7))  # a new place after the loop: the next fresh id
+    assert r["id"] == 5
+
+
+def test_score_must_exceed_theta_sigma_strictly():
+    c = svc(theta_sigma=6)
+    for i in range(3):
+        c.compute(block(i))
+    r = c.compute(block(0))  # score 6 is not > 6
+    assert not r["is_loop_closure"]
+
+
+def test_ties_go_to_the_lowest_interval():
+    c = svc(theta_alpha=100)  # never extend
+    c.compute(block(0))
+    c.compute(block(0))  # interval 1 also holds block 0 (interval 0 excluded at that time)
+    c.compute(block(5))
+    r = c.compute(block(0))
+    assert r["is_loop_closure"] and r["best_interval"] == 0
+
+
+def test_same_interval_keeps_the_current_template():
+    c = svc(theta_sigma=100)
+    c.compute(sdr(1, 2, 3, 4))
+    r = c.compute(sdr(1, 2, 3, 5))
+    assert r["id"] == 0 and not r["is_loop_closure"]
+
+
+def test_state_round_trip_continues_identically():
+    rng = np.random.default_rng(0)
+    seq = [rng.choice(256, 12, replace=False).astype(np.uint32) for _ in range(60)]
+    seq += seq[:20]  # revisits
+    a = svc(theta_alpha=6, theta_sigma=8)
+    for y in seq[:45]:
+        a.compute(y)
+    b = svc()
+    b.load_state_dict(a.state_dict())
+    for y in seq[45:]:
+        assert a.compute(y) == b.compute(y)
+
+
+def test_invalid_sdr_is_rejected():
+    c = svc()
+    with pytest.raises(ValueError):
+        c.compute(np.array([1, 300]))
+
+
+def test_stage_emits_templates_and_writes_csv(tmp_path):
+    st = make_stage(theta_alpha=3, theta_rho=2, theta_sigma=4, exclude_recent_intervals=1, sdr_size=256)
+    st.run_dir = str(tmp_path)
+    outs = []
+    for f, i in enumerate([0, 1, 2, 1]):
+        outs += st.process("sdr", Message("sdr", f, f * 0.1, {"cells": block(i), "size": 256}))
+    assert [m["id"] for _, m in outs] == [0, 1, 2, 1]
+    assert outs[-1][1]["is_loop_closure"] is True
+    st.flush()
+    lines = (tmp_path / "templates.csv").read_text().splitlines()
+    assert lines[0].startswith("frame,stamp,template_id,is_loop_closure") and lines[4].startswith("3,")

@@ -1,0 +1,114 @@
+"""RatSLAM back-end benchmark -> bench/results/ratslam.json.
+
+Keys: pc_ms_11, pc_ms_21, pc_ms_30 (one pose-cell odometry step, p50), lv_ms_100, lv_ms_1000 (one
+local-view match, iRat-sized 60x20 templates, shift +-4), relax_ms_1k, relax_ms_10k (one relaxation
+after an action, exp_loops 20, a chain of experiences with loop links), tuc_odometry_mean_m,
+tuc_map_mean_m (the TU Chemnitz corridor run, see bench/tuc.py), plus details.
+Run: ``.venv/bin/python bench/ratslam.py``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import tuc  # noqa: E402
+
+from stages.ratslam.experience_map import ExperienceMap  # noqa: E402
+from stages.ratslam.local_view import LocalViewCells  # noqa: E402
+from stages.ratslam.pose_cells import PoseCellNetwork  # noqa: E402
+
+TUC_SETTINGS = dict(pc=dict(pc_dim_xy=30, pc_cell_x_size=1.0, exp_delta_pc_threshold=2.0),
+                    em=dict(exp_loops=20, exp_initial_em_deg=0), threshold=0.6, min_gap_s=30.0)
+
+
+def p50(fn, reps):
+    ts = []
+    for _ in range(reps):
+        t = time.perf_counter()
+        fn()
+        ts.append(time.perf_counter() - t)
+    return float(np.median(ts) * 1e3)
+
+
+def bench_pc(n: int) -> float:
+    pc = PoseCellNetwork(pc_dim_xy=n)
+    rng = np.random.default_rng(0)
+    for _ in range(30):
+        pc.on_odo(0.3, 0.05, 1.0)
+    return p50(lambda: (pc.on_odo(rng.random() * 0.8, rng.random() * 0.2 - 0.1, 1.0), pc.get_action()), 200)
+
+
+def bench_lv(n: int) -> float:
+    rng = np.random.default_rng(1)
+    lv = LocalViewCells(template_x_size=60, template_y_size=20, vt_shift_match=4, vt_step_match=1,
+                        vt_match_threshold=0.03)
+    base = rng.random((20, 60))
+    lv.templates = np.clip(base[None] + rng.normal(0, 0.01, (n, 20, 60)), 0, 1)  # all pass the mean pre-filter
+    lv.means = lv.templates.mean(axis=(1, 2))
+    q = np.clip(base + rng.normal(0, 0.01, (20, 60)), 0, 1)
+    return p50(lambda: lv.compare(q), 30)
+
+
+def bench_relax(n: int) -> float:
+    em = ExperienceMap(exp_loops=20)
+    rng = np.random.default_rng(2)
+    em.on_action(1, 0, 0, 0.0)
+    for i in range(1, n):
+        em.on_odo(1.0, rng.normal(0, 0.1), 1.0)
+        em.on_action(1, i - 1, i, 0.0) if i % 50 else em.on_action(1, i - 1, i, 0.0)
+        if i % 100 == 0 and i > 200:
+            em.create_link(i, i - 200, 0.0)
+    return p50(em.iterate, 10)
+
+
+def main() -> None:
+    out = Path(__file__).parent / "results" / "ratslam.json"
+    res: dict = {}
+    for n in (11, 21, 30):
+        res[f"pc_ms_{n}"] = bench_pc(n)
+        print(n, res[f"pc_ms_{n}"], flush=True)
+    for n in (100, 1000):
+        res[f"lv_ms_{n}"] = bench_lv(n)
+        print("lv", n, res[f"lv_ms_{n}"], flush=True)
+    for n, key in ((1000, "relax_ms_1k"), (10000, "relax_ms_10k")):
+        res[key] = bench_relax(n)
+        print(key, res[key], flush=True)
+    if tuc.DATA.is_dir():
+        r = tuc.run(TUC_SETTINGS["pc"], TUC_SETTINGS["em"], TUC_SETTINGS["threshold"], TUC_SETTINGS["min_gap_s"])
+        res.update({"tuc_odometry_mean_m": r["odometry_mean_m"], "tuc_map_mean_m": r["map_mean_m"],
+                    "tuc": {k: v for k, v in r.items() if not hasattr(v, "shape")}, "tuc_settings": TUC_SETTINGS})
+        print("tuc", res["tuc"], flush=True)
+        try:
+            import matplotlib
+
+            matplotlib.use("Agg")
+            import matplotlib.pyplot as plt
+
+            fig, ax = plt.subplots(figsize=(10, 4))
+            ax.plot(r["gt"][:, 0], r["gt"][:, 1], "k-", lw=1, label="ground truth")
+            ax.plot(*tuc.align_rigid_2d(r["odo"][:, 1:], r["gt"]).T, "r-", lw=0.7, label="odometry")
+            ax.plot(*tuc.align_rigid_2d(r["est"][:, 1:], r["gt"]).T, "b-", lw=0.7, label="experience map")
+            ax.set_aspect("equal")
+            ax.legend()
+            ax.set_title(f"TUC corridor: mean error map {r['map_mean_m']:.1f} m, odometry {r['odometry_mean_m']:.1f} m")
+            fig.savefig(Path(__file__).parent / "results" / "ratslam_tuc.png", dpi=110, bbox_inches="tight")
+        except Exception as exc:  # the plot is a convenience
+            print("plot failed:", exc)
+    res["pc_cpp_reference_ms"] = {"11": 0.5, "21": 0.8, "30": 1.3}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(res, indent=2))
+    print(f"wrote {out}")
+    assert math.isfinite(res["pc_ms_11"])
+
+
+if __name__ == "__main__":
+    main()

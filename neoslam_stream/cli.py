@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 #: modules adding subcommands through ``register(subparsers)``
-EXTENSIONS = ["neoslam_stream.cli_data", "neoslam_stream.cli_slam"]
+EXTENSIONS = ["neoslam_stream.cli_data"]
 
 #: what `neoslam run` runs with no --config
 DEFAULT_CONFIG = "default"
@@ -92,10 +92,24 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 1
     print_summary(result.report)
-    post = getattr(args, "post_run", None)
-    if post is not None:
-        post(result, cfg)
+    run_dir = result.run_dir
+    if (run_dir / "groundtruth.tum").exists() and (run_dir / "trajectory.tum").exists():
+        from .evaluation import evaluate_run
+
+        ev = evaluate_run(run_dir)
+        print_evaluation(ev)
     return 130 if result.interrupted else 0
+
+
+def print_evaluation(ev: dict[str, Any]) -> None:
+    t, o = ev.get("trajectory_ape", {}), ev.get("odometry_ape", {})
+    m = ev.get("map_paper", {})
+    lc = ev.get("loop_closures", {})
+    print(f"trajectory APE mean {t.get('mean_m', float('nan')):.3f} m (max {t.get('max_m', float('nan')):.3f}); "
+          f"odometry APE mean {o.get('mean_m', float('nan')):.3f} m; "
+          f"map nodes {ev.get('map_nodes', 0)}, paper metric mean {m.get('mean_m', float('nan')):.3f} m; "
+          f"loop closures {lc.get('closures')}, precision {lc.get('precision')}")
+    print("evaluation.json and map.png written")
 
 
 def print_summary(report: dict[str, Any]) -> None:

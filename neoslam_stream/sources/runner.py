@@ -20,11 +20,13 @@ from __future__ import annotations
 
 import importlib
 import logging
+import math
 import signal
 import sys
 import threading
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -130,6 +132,14 @@ def frame_messages(sf: Any, published_at: float) -> list[tuple[str, Message]]:
     return out
 
 
+def _write_tum(path: Path, rows: list[tuple[float, float, float, float]]) -> None:
+    if not rows:
+        return
+    with open(path, "w") as fh:
+        for t, x, y, yaw in rows:
+            fh.write(f"{t:.6f} {x:.6f} {y:.6f} 0 0 0 {math.sin(yaw / 2):.9f} {math.cos(yaw / 2):.9f}\n")
+
+
 def run_source(spec: SourceRunSpec) -> None:
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s source %(levelname)s %(message)s")
     stop = threading.Event()
@@ -188,6 +198,10 @@ def run_source(spec: SourceRunSpec) -> None:
     t0 = time.monotonic()
     stamp0: float | None = None
     n_sent = 0
+    # what the source published, for evaluation: ground truth and dead-reckoned wheel odometry
+    gt_rows: list[tuple[float, float, float, float]] = []
+    odo_rows: list[tuple[float, float, float, float]] = []
+    ox = oy = oth = 0.0
     try:
         for sf in source:
             if stop.is_set():
@@ -222,6 +236,14 @@ def run_source(spec: SourceRunSpec) -> None:
             for topic, msg in frame_messages(sf, now):
                 bus.put(topic, encode(msg))
                 counts[topic] += 1
+            if sf.groundtruth is not None:
+                gt_rows.append((sf.stamp, *sf.groundtruth))
+            if sf.odom is not None:
+                vt, vr, dt = sf.odom
+                oth += vr * dt
+                ox += vt * dt * math.cos(oth)
+                oy += vt * dt * math.sin(oth)
+                odo_rows.append((sf.stamp, ox, oy, oth))
             first_pub = now if first_pub is None else first_pub
             last_pub = now
             last_frame = sf.frame
@@ -242,6 +264,8 @@ def run_source(spec: SourceRunSpec) -> None:
     finally:
         if bar is not None:
             bar.stop()
+        _write_tum(Path(spec.run_dir) / "groundtruth.tum", gt_rows)
+        _write_tum(Path(spec.run_dir) / "odometry.tum", odo_rows)
         publish_stats(final=True)
         time.sleep(0.3)
         token.undeclare()

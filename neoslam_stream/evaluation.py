@@ -1,0 +1,173 @@
+"""Trajectory and map evaluation against ground truth, and the map plot.
+
+* The paper's metric (as the NeoSLAM / OpenRatSLAM2 scripts compute it): for every experience
+  node, the ground-truth sample matched in time; subtract the first point of each sequence (no
+  rotation or scale alignment); per-node Euclidean error; mean and max.
+* APE: per-frame trajectory error after a least-squares SE(2) alignment (Umeyama, no scale) of the
+  estimate onto the ground truth; mean, RMSE and max. Our own implementation (evo is GPL-3.0).
+* Loop closures: precision/recall when ground truth is known (a closure is correct when the
+  matched template was created within ``radius`` metres of the current true position).
+* ``map.png``: experience map, ground truth and odometry in one plot, loop closures marked.
+
+``evaluate_run(run_dir)`` reads a run folder (``trajectory.tum``, ``map.json``, ``templates.csv``,
+``groundtruth.tum``, ``odometry.tum``) and writes ``evaluation.json`` and ``map.png``;
+``neoslam evaluate RUN_DIR [--gt FILE]`` does the same from the command line.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def read_tum(path: str | Path) -> np.ndarray:
+    """(n, 4) array of stamp, x, y, yaw from a TUM file (``t x y z qx qy qz qw``)."""
+    rows = []
+    for line in Path(path).read_text().splitlines():
+        if not line.strip() or line.startswith("#"):
+            continue
+        p = [float(v) for v in line.replace(",", " ").split()]
+        if len(p) < 8:
+            raise ValueError(f"{path}: TUM lines need 8 values, got {len(p)}")
+        t, x, y, _z, qx, qy, qz, qw = p[:8]
+        yaw = np.arctan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz))
+        rows.append((t, x, y, yaw))
+    return np.array(rows, dtype=np.float64).reshape(-1, 4)
+
+
+def write_tum(path: str | Path, rows: np.ndarray) -> None:
+    with open(path, "w") as fh:
+        for t, x, y, yaw in rows:
+            fh.write(f"{t:.6f} {x:.6f} {y:.6f} 0 0 0 {np.sin(yaw / 2):.9f} {np.cos(yaw / 2):.9f}\n")
+
+
+def associate(t_est: np.ndarray, t_ref: np.ndarray, max_dt: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """Indices pairing each estimate time with the nearest reference time within ``max_dt``."""
+    j = np.clip(np.searchsorted(t_ref, t_est), 1, max(1, len(t_ref) - 1))
+    prev = np.clip(j - 1, 0, len(t_ref) - 1)
+    j = np.clip(j, 0, len(t_ref) - 1)
+    best = np.where(np.abs(t_ref[prev] - t_est) <= np.abs(t_ref[j] - t_est), prev, j)
+    ok = np.abs(t_ref[best] - t_est) <= max_dt
+    return np.flatnonzero(ok), best[ok]
+
+
+def umeyama_se2(est: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation R (2x2) and translation t minimising sum |R est + t - ref|^2."""
+    if len(est) < 2:
+        return np.eye(2), (ref.mean(0) - est.mean(0)) if len(est) else np.zeros(2)
+    mu_e, mu_r = est.mean(0), ref.mean(0)
+    H = (est - mu_e).T @ (ref - mu_r)
+    U, _, Vt = np.linalg.svd(H)
+    D = np.diag([1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    return R, mu_r - R @ mu_e
+
+
+def ape(est_xy: np.ndarray, ref_xy: np.ndarray) -> dict[str, float]:
+    R, t = umeyama_se2(est_xy, ref_xy)
+    err = np.linalg.norm(est_xy @ R.T + t - ref_xy, axis=1)
+    return {"mean_m": float(err.mean()), "rmse_m": float(np.sqrt((err ** 2).mean())), "max_m": float(err.max())}
+
+
+def paper_metric(est_xy: np.ndarray, ref_xy: np.ndarray) -> dict[str, float]:
+    """Subtract each sequence's first point, then per-point Euclidean error (mean, max)."""
+    err = np.linalg.norm((est_xy - est_xy[0]) - (ref_xy - ref_xy[0]), axis=1)
+    return {"mean_m": float(err.mean()), "max_m": float(err.max())}
+
+
+def loop_closure_quality(templates_csv: Path, gt: np.ndarray, radius: float) -> dict[str, Any]:
+    rows = np.loadtxt(templates_csv, delimiter=",", skiprows=1, ndmin=2)
+    if rows.size == 0:
+        return {"closures": 0, "precision": None, "recall": None}
+    stamps, ids, loops = rows[:, 1], rows[:, 2].astype(int), rows[:, 3].astype(bool)
+    _, gi = associate(stamps, gt[:, 0], max_dt=1.0)
+    pos = gt[gi, 1:3]
+    created: dict[int, np.ndarray] = {}
+    for k, tid in enumerate(ids):
+        created.setdefault(int(tid), pos[k])
+    correct = sum(1 for k in np.flatnonzero(loops) if np.linalg.norm(created[int(ids[k])] - pos[k]) <= radius)
+    # revisits: frames whose true position was visited earlier (more than 30 s before)
+    revisit = 0
+    for k in range(len(stamps)):
+        earlier = stamps < stamps[k] - 30.0
+        if earlier.any() and np.min(np.linalg.norm(pos[earlier] - pos[k], axis=1)) <= radius:
+            revisit += 1
+    n_loops = int(loops.sum())
+    return {"closures": n_loops, "correct": int(correct),
+            "precision": correct / n_loops if n_loops else None,
+            "recall": correct / revisit if revisit else None, "revisit_frames": revisit, "radius_m": radius}
+
+
+def evaluate_run(run_dir: str | Path, gt_path: str | Path | None = None, radius: float = 1.0,
+                 plot: bool = True) -> dict[str, Any]:
+    run_dir = Path(run_dir)
+    gt_file = Path(gt_path) if gt_path else run_dir / "groundtruth.tum"
+    if not gt_file.exists():
+        raise FileNotFoundError(f"no ground truth: {gt_file} (give --gt FILE)")
+    gt = read_tum(gt_file)
+    result: dict[str, Any] = {"ground_truth": str(gt_file)}
+    traj = read_tum(run_dir / "trajectory.tum")
+    ie, ig = associate(traj[:, 0], gt[:, 0])
+    result["trajectory_ape"] = ape(traj[ie, 1:3], gt[ig, 1:3])
+    result["trajectory_paper"] = paper_metric(traj[ie, 1:3], gt[ig, 1:3])
+    mp = json.loads((run_dir / "map.json").read_text()) if (run_dir / "map.json").exists() else {"nodes": []}
+    nodes = np.array([[n["stamp"], n["x"], n["y"]] for n in mp["nodes"]]).reshape(-1, 3)
+    if len(nodes):
+        ne, ng = associate(nodes[:, 0], gt[:, 0], max_dt=1.0)
+        result["map_paper"] = paper_metric(nodes[ne, 1:3], gt[ng, 1:3])
+        result["map_nodes"] = int(len(nodes))
+    odo_file = run_dir / "odometry.tum"
+    if odo_file.exists():
+        odo = read_tum(odo_file)
+        oe, og = associate(odo[:, 0], gt[:, 0])
+        result["odometry_ape"] = ape(odo[oe, 1:3], gt[og, 1:3])
+        result["odometry_paper"] = paper_metric(odo[oe, 1:3], gt[og, 1:3])
+    if (run_dir / "templates.csv").exists():
+        result["loop_closures"] = loop_closure_quality(run_dir / "templates.csv", gt, radius)
+    (run_dir / "evaluation.json").write_text(json.dumps(result, indent=2))
+    if plot:
+        plot_map(run_dir, gt, traj, mp, result)
+    return result
+
+
+def plot_map(run_dir: Path, gt: np.ndarray, traj: np.ndarray, mp: dict, result: dict) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ie, ig = associate(traj[:, 0], gt[:, 0])
+    R, t = umeyama_se2(traj[ie, 1:3], gt[ig, 1:3])
+    fig, ax = plt.subplots(figsize=(7, 6))
+    ax.plot(gt[:, 1], gt[:, 2], "k-", lw=1.5, label="ground truth")
+    odo_file = run_dir / "odometry.tum"
+    if odo_file.exists():
+        odo = read_tum(odo_file)
+        oe, og = associate(odo[:, 0], gt[:, 0])
+        Ro, to = umeyama_se2(odo[oe, 1:3], gt[og, 1:3])
+        o = odo[:, 1:3] @ Ro.T + to
+        ax.plot(o[:, 0], o[:, 1], "r-", lw=0.8, alpha=0.7, label="odometry")
+    nodes = {n["id"]: np.array([n["x"], n["y"]]) @ R.T + t for n in mp.get("nodes", [])}
+    for lk in mp.get("links", []):
+        a, b = nodes.get(lk["from"]), nodes.get(lk["to"])
+        if a is not None and b is not None:
+            ax.plot([a[0], b[0]], [a[1], b[1]], "b-", lw=0.6)
+    if nodes:
+        pts = np.array(list(nodes.values()))
+        ax.plot(pts[:, 0], pts[:, 1], "b.", ms=3, label="experience map")
+    tpl = run_dir / "templates.csv"
+    if tpl.exists():
+        rows = np.loadtxt(tpl, delimiter=",", skiprows=1, ndmin=2)
+        if rows.size:
+            lc = rows[rows[:, 3] > 0]
+            _, gi = associate(lc[:, 1], gt[:, 0], max_dt=1.0)
+            ax.plot(gt[gi, 1], gt[gi, 2], "g+", ms=6, label="loop closure (true position)")
+    ax.set_aspect("equal")
+    ax.legend(loc="best", fontsize=8)
+    ape_m = result.get("trajectory_ape", {}).get("mean_m", float("nan"))
+    ax.set_title(f"{run_dir.name}: APE mean {ape_m:.2f} m")
+    fig.savefig(run_dir / "map.png", dpi=110, bbox_inches="tight")
+    plt.close(fig)

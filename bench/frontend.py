@@ -74,12 +74,35 @@ def bench_d(k: int, reps: int) -> float:
     return p50(lambda: svc.compute(next(it)), reps)
 
 
+def compare_tie_rules(path: Path, step: int = 8) -> None:
+    """Loop-closure quality with the real neocortex, htm.core's tie rule vs NuPIC's."""
+    from stages.neocortex import Neocortex
+
+    res = json.loads(path.read_text()) if path.exists() else {}
+    svc = dict(theta_alpha=384, theta_rho=3, theta_sigma=470, exclude_recent_intervals=3)
+    out = {}
+    for rule in ("lowest", "random"):
+        nc = Neocortex(tie_break=rule)
+        runs = run_frontend("efficientnet_lite0", step, [svc, {**svc, "theta_sigma": 400}], tolerance=150,
+                            neocortex=nc.compute)
+        out[rule] = {"sigma470": runs[0], "sigma400": runs[1]}
+        print(rule, [{k: r[k] for k in ("closures", "correct", "precision", "recall")} for r in runs], flush=True)
+    res["nordland_tm_tie_break"] = out
+    path.write_text(json.dumps(res, indent=2))
+    print(f"merged nordland_tm_tie_break into {path}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="fewer repetitions, K up to 10k, Nordland subset")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "frontend.json"))
+    ap.add_argument("--tm-compare", action="store_true",
+                    help="only compare the TM tie rules on Nordland (real neocortex) and merge into --out")
     args = ap.parse_args()
+    if args.tm_compare:
+        compare_tie_rules(Path(args.out))
+        return
     reps = 10 if args.quick else 30
     res: dict = {"threads": args.threads}
     a1, ab = bench_a("random_alexnet", reps, 8, args.threads)

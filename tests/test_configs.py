@@ -1,0 +1,27 @@
+"""Every shipped config validates, and the dataset values are the research notes' values."""
+
+from pathlib import Path
+
+import pytest
+
+from neoslam_stream.config import load_config
+
+CONFIGS = sorted((Path(__file__).resolve().parents[1] / "configs").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("path", CONFIGS, ids=[p.stem for p in CONFIGS])
+def test_config_validates(path):
+    load_config(path)
+
+
+def test_dataset_values():
+    irat = load_config("irat2011")
+    assert (irat.pose_cells.pc_dim_xy, irat.pose_cells.pc_cell_x_size, irat.pose_cells.pc_vt_inject_energy) == (
+        11, 0.015, 0.1)
+    assert (irat.experience_map.exp_loops, irat.experience_map.exp_initial_em_deg) == (20, 140)
+    lake = load_config("fiu_lake")
+    assert (lake.spatial_view.theta_sigma, lake.spatial_view.exclude_recent_intervals) == (410, 20)
+    rob = load_config("robotarium")
+    assert (rob.spatial_view.theta_rho, rob.spatial_view.theta_sigma, rob.experience_map.exp_loops) == (6, 485, 1)
+    stl = load_config("stlucia")
+    assert stl.odometry == "visual" and stl.visual_odometry.vtrans_scaling == 1000

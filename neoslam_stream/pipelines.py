@@ -108,6 +108,11 @@ PIPELINES: dict[str, Any] = {
 SOURCES: dict[str, str] = {
     "emulated": "neoslam_stream.emulated:EmulatedSource",
     "synthetic": "neoslam_stream.sources.synthetic:SyntheticWorldSource",
+    "folder": "neoslam_stream.sources.files:ImageFolderSource",
+    "video": "neoslam_stream.sources.files:VideoSource",
+    "bag": "neoslam_stream.sources.bag:BagSource",
+    "zenoh-ros2": "neoslam_stream.sources.zenoh_camera:ZenohRos2CameraSource",
+    "zenoh": "neoslam_stream.sources.zenoh_camera:ZenohImageSource",
 }
 
 

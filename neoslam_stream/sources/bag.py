@@ -1,0 +1,146 @@
+"""ROS 1 bags, ROS 2 bags (.db3 folders) and MCAP files through ``rosbags`` (no ROS installed).
+
+Frames are the messages of ``image_topic`` (sensor_msgs Image or CompressedImage). Each frame
+carries the wheel odometry of the interval since the previous frame (``odom_topic``,
+nav_msgs/Odometry: forward speed twist.linear.x and yaw rate twist.angular.z, as OpenRatSLAM reads
+them, integrated over the interval so that summing vtrans*dt and vrot*dt over frames reproduces the
+odometry), and the ground truth nearest in time (``groundtruth_topic``: geometry_msgs PoseStamped /
+PoseWithCovarianceStamped, nav_msgs Odometry, or sensor_msgs NavSatFix converted to local metres
+with an equirectangular projection around the first valid fix; fixes with a zero latitude or
+longitude or a negative status are skipped, the previous position is kept). Without an image topic, frames are
+the odometry messages (odometry-only runs of the back end). Stamps are header stamps.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .base import Source, SourceFrame
+
+EARTH_RADIUS = 6378137.0
+IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
+POSE_TYPES = ("geometry_msgs/msg/PoseStamped", "geometry_msgs/msg/PoseWithCovarianceStamped",
+              "nav_msgs/msg/Odometry", "sensor_msgs/msg/NavSatFix")
+
+
+def _stamp(msg: Any, fallback_ns: int) -> float:
+    h = getattr(msg, "header", None)
+    if h is not None and (h.stamp.sec or h.stamp.nanosec):
+        return h.stamp.sec + h.stamp.nanosec * 1e-9
+    return fallback_ns * 1e-9
+
+
+def _yaw(q: Any) -> float:
+    return math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
+
+
+def image_from_msg(msg: Any, msgtype: str) -> dict[str, Any]:
+    """SourceFrame image fields of a sensor_msgs Image / CompressedImage."""
+    if msgtype.endswith("CompressedImage"):
+        fmt = "png" if "png" in str(msg.format).lower() else "jpeg"
+        return {"compressed": bytes(msg.data), "format": fmt}
+    enc = str(msg.encoding).lower()
+    channels = {"rgb8": 3, "bgr8": 3, "mono8": 1, "8uc1": 1, "rgba8": 4, "bgra8": 4, "8uc3": 3}.get(enc)
+    if channels is None:
+        raise ValueError(f"image encoding {msg.encoding!r} is not supported (rgb8, bgr8, mono8, rgba8, bgra8)")
+    data = np.asarray(msg.data, dtype=np.uint8)
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    rows = data[: h * step].reshape(h, step)[:, : w * channels]
+    img = rows.reshape(h, w, channels) if channels > 1 else rows.reshape(h, w)
+    return {"image": np.ascontiguousarray(img), "encoding": "mono8" if channels == 1 else enc}
+
+
+class BagSource(Source):
+    def __init__(self, path: str, image_topic: str | None = None, odom_topic: str | None = None,
+                 groundtruth_topic: str | None = None, max_frames: int | None = None,
+                 typestore: str = "ROS2_HUMBLE") -> None:
+        from rosbags.highlevel import AnyReader
+        from rosbags.typesys import Stores, get_typestore
+
+        self.path = Path(path)
+        if not self.path.exists():
+            raise FileNotFoundError(f"bag {self.path} does not exist")
+        self.topics = {"image": image_topic, "odom": odom_topic, "groundtruth": groundtruth_topic}
+        if not any(self.topics.values()):
+            raise ValueError("name at least one of image_topic, odom_topic, groundtruth_topic")
+        self._reader_cls = AnyReader
+        self._typestore = get_typestore(getattr(Stores, typestore))
+        self.max_frames = max_frames
+        with AnyReader([self.path], default_typestore=self._typestore) as reader:
+            available = {c.topic: c.msgtype for c in reader.connections}
+            for role, topic in self.topics.items():
+                if topic and topic not in available:
+                    raise ValueError(f"{role} topic {topic!r} not in {self.path}; it has {sorted(available)}")
+            frame_topic = image_topic or odom_topic or groundtruth_topic
+            count = sum(c.msgcount for c in reader.connections if c.topic == frame_topic)
+            duration = max(1e-9, (reader.end_time - reader.start_time) * 1e-9)
+        self.available = available
+        self.length = min(count, max_frames) if max_frames else count
+        self.rate_hz = count / duration if count > 1 else None
+
+    def __iter__(self) -> Iterator[SourceFrame]:
+        frame_topic = self.topics["image"] or self.topics["odom"] or self.topics["groundtruth"]
+        wanted = {t for t in self.topics.values() if t}
+        with self._reader_cls([self.path], default_typestore=self._typestore) as reader:
+            conns = [c for c in reader.connections if c.topic in wanted]
+            frame = 0
+            last_odom_t: float | None = None
+            v = w = 0.0
+            acc_d = acc_th = 0.0
+            prev_frame_t: float | None = None
+            origin: tuple[float, float] | None = None
+            gt: tuple[float, float, float] | None = None
+            for conn, t_ns, raw in reader.messages(connections=conns):
+                msg = reader.deserialize(raw, conn.msgtype)
+                t = _stamp(msg, t_ns)
+                if conn.topic == self.topics["odom"]:
+                    if last_odom_t is not None and t > last_odom_t:
+                        acc_d += v * (t - last_odom_t)
+                        acc_th += w * (t - last_odom_t)
+                    v, w = float(msg.twist.twist.linear.x), float(msg.twist.twist.angular.z)
+                    last_odom_t = t
+                if conn.topic == self.topics["groundtruth"]:
+                    gt, origin = self._pose(msg, conn.msgtype, origin, gt)
+                if conn.topic != frame_topic:
+                    continue
+                if last_odom_t is not None and conn.topic != self.topics["odom"] and t > last_odom_t:
+                    acc_d += v * (t - last_odom_t)  # integrate up to the frame's stamp
+                    acc_th += w * (t - last_odom_t)
+                    last_odom_t = t
+                dt = 0.0 if prev_frame_t is None else max(0.0, t - prev_frame_t)
+                odom = None
+                if self.topics["odom"] and last_odom_t is not None:
+                    odom = (acc_d / dt, acc_th / dt, dt) if dt > 0 else (0.0, 0.0, 0.0)
+                acc_d = acc_th = 0.0
+                prev_frame_t = t
+                fields = image_from_msg(msg, conn.msgtype) if conn.topic == self.topics["image"] else {}
+                yield SourceFrame(frame=frame, stamp=t, odom=odom, groundtruth=gt, **fields)
+                frame += 1
+                if self.max_frames and frame >= self.max_frames:
+                    return
+
+    @staticmethod
+    def _pose(msg: Any, msgtype: str, origin: tuple[float, float] | None,
+              last: tuple[float, float, float] | None) -> tuple[Any, Any]:
+        if msgtype == "sensor_msgs/msg/NavSatFix":
+            lat, lon = float(msg.latitude), float(msg.longitude)
+            status = getattr(getattr(msg, "status", None), "status", 0)
+            if lat == 0.0 or lon == 0.0 or status < 0 or not (math.isfinite(lat) and math.isfinite(lon)):
+                return last, origin  # no fix, or a receiver's zero placeholder (seen in real bags)
+            if origin is None:
+                origin = (lat, lon)
+            x = EARTH_RADIUS * math.radians(lon - origin[1]) * math.cos(math.radians(origin[0]))
+            y = EARTH_RADIUS * math.radians(lat - origin[0])
+            return (x, y, 0.0), origin
+        pose = msg.pose.pose if msgtype in ("geometry_msgs/msg/PoseWithCovarianceStamped",
+                                            "nav_msgs/msg/Odometry") else msg.pose
+        return (float(pose.position.x), float(pose.position.y), _yaw(pose.orientation)), origin
+
+    def info(self) -> dict[str, Any]:
+        return {"kind": "bag", "path": str(self.path), "topics": self.topics, "frames": self.length,
+                "rate_hz": self.rate_hz}

@@ -1,0 +1,125 @@
+"""Sources reading files: an image folder (+ TUM odometry / ground truth) and a video file."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from .base import Source, SourceFrame
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".ppm", ".pgm")
+
+
+def read_tum_rows(path: Path) -> np.ndarray:
+    """(n, 4): stamp, x, y, yaw."""
+    rows = []
+    for line in path.read_text().splitlines():
+        if not line.strip() or line.startswith("#"):
+            continue
+        p = [float(v) for v in line.replace(",", " ").split()]
+        if len(p) < 8:
+            raise ValueError(f"{path}: a TUM line needs 8 values (t x y z qx qy qz qw), got {len(p)}")
+        t, x, y, _z, qx, qy, qz, qw = p[:8]
+        rows.append((t, x, y, math.atan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz))))
+    return np.array(rows).reshape(-1, 4)
+
+
+def odometry_between(odo: np.ndarray, t0: float, t1: float) -> tuple[float, float, float]:
+    """(vtrans, vrot, dt) moving from the odometry pose at t0 to the one at t1 (nearest samples)."""
+    if t1 <= t0 or len(odo) == 0:
+        return 0.0, 0.0, max(0.0, t1 - t0)
+    i0 = int(np.clip(np.searchsorted(odo[:, 0], t0), 0, len(odo) - 1))
+    i1 = int(np.clip(np.searchsorted(odo[:, 0], t1), 0, len(odo) - 1))
+    dist = math.hypot(odo[i1, 1] - odo[i0, 1], odo[i1, 2] - odo[i0, 2])
+    heading = math.atan2(odo[i1, 2] - odo[i0, 2], odo[i1, 1] - odo[i0, 1])
+    if dist > 1e-12 and abs(math.remainder(heading - odo[i0, 3], 2 * math.pi)) > math.pi / 2:
+        dist = -dist  # moving backwards
+    dth = math.remainder(odo[i1, 3] - odo[i0, 3], 2 * math.pi)
+    dt = t1 - t0
+    return dist / dt, dth / dt, dt
+
+
+class ImageFolderSource(Source):
+    """Images of a folder in name order (``images/`` inside it if present), with optional
+    ``odometry.tum`` and ``groundtruth.tum``; stamps from the odometry file, else ``frame / rate_hz``."""
+
+    def __init__(self, path: str, rate_hz: float = 10.0, odometry: str | None = None,
+                 groundtruth: str | None = None, max_frames: int | None = None) -> None:
+        root = Path(path)
+        if not root.is_dir():
+            raise FileNotFoundError(f"image folder {root} does not exist")
+        img_dir = root / "images" if (root / "images").is_dir() else root
+        self.files = sorted(p for p in img_dir.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        if not self.files:
+            raise FileNotFoundError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in {img_dir}")
+        if max_frames:
+            self.files = self.files[:max_frames]
+        self.rate_hz = rate_hz
+        self.length = len(self.files)
+        odo_path = Path(odometry) if odometry else root / "odometry.tum"
+        gt_path = Path(groundtruth) if groundtruth else root / "groundtruth.tum"
+        self.odo = read_tum_rows(odo_path) if odo_path.exists() else None
+        self.gt = read_tum_rows(gt_path) if gt_path.exists() else None
+        self.root = root
+
+    def __iter__(self) -> Iterator[SourceFrame]:
+        prev_t: float | None = None
+        for i, f in enumerate(self.files):
+            t = float(self.odo[i, 0]) if self.odo is not None and i < len(self.odo) else i / self.rate_hz
+            img = cv2.imread(str(f), cv2.IMREAD_COLOR)
+            odom = gt = None
+            if self.odo is not None:
+                odom = odometry_between(self.odo, prev_t if prev_t is not None else t, t)
+            if self.gt is not None:
+                j = int(np.clip(np.searchsorted(self.gt[:, 0], t), 0, len(self.gt) - 1))
+                gt = tuple(float(v) for v in self.gt[j, 1:4])
+            prev_t = t
+            if img is None:  # unreadable file: pass the bytes on, the stage reports the fault
+                yield SourceFrame(i, t, compressed=f.read_bytes(), format=f.suffix.lstrip("."), odom=odom,
+                                  groundtruth=gt)
+                continue
+            yield SourceFrame(i, t, image=np.ascontiguousarray(img[:, :, ::-1]), encoding="rgb8", odom=odom,
+                              groundtruth=gt)
+
+    def info(self) -> dict[str, Any]:
+        return {"kind": "folder", "path": str(self.root), "frames": self.length,
+                "odometry": self.odo is not None, "groundtruth": self.gt is not None}
+
+
+class VideoSource(Source):
+    """Frames of a video file (OpenCV), stamped by the container's frame rate."""
+
+    def __init__(self, path: str, rate_hz: float | None = None, max_frames: int | None = None) -> None:
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise FileNotFoundError(f"video file {self.path} does not exist")
+        cap = cv2.VideoCapture(str(self.path))
+        if not cap.isOpened():
+            raise ValueError(f"OpenCV cannot open {self.path} as a video")
+        fps = cap.get(cv2.CAP_PROP_FPS) or 0.0
+        n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+        cap.release()
+        self.rate_hz = rate_hz or (fps if fps > 0 else 10.0)
+        self.length = min(n, max_frames) if max_frames and n else (n or max_frames)
+        self.max_frames = max_frames
+
+    def __iter__(self) -> Iterator[SourceFrame]:
+        cap = cv2.VideoCapture(str(self.path))
+        i = 0
+        try:
+            while self.max_frames is None or i < self.max_frames:
+                ok, bgr = cap.read()
+                if not ok:
+                    break
+                yield SourceFrame(i, i / self.rate_hz, image=np.ascontiguousarray(bgr[:, :, ::-1]), encoding="rgb8")
+                i += 1
+        finally:
+            cap.release()
+
+    def info(self) -> dict[str, Any]:
+        return {"kind": "video", "path": str(self.path), "frames": self.length, "rate_hz": self.rate_hz}

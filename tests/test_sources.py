@@ -95,7 +95,7 @@ def test_mcap_odometry_and_pose():
     with AnyReader([BAGS / "nav2_turtlebot.mcap"], default_typestore=_ts()) as r:
         con = [c for c in r.connections if c.topic == "/odom"]
         rows = []
-        for c, t, raw in r.messages(connections=con):
+        for c, _t, raw in r.messages(connections=con):
             m = r.deserialize(raw, c.msgtype)
             rows.append((m.header.stamp.sec + m.header.stamp.nanosec * 1e-9, m.twist.twist.linear.x))
     rows = np.array(rows)

@@ -63,3 +63,99 @@ def register(sub: argparse._SubParsersAction, bench_sub: argparse._SubParsersAct
     s.add_argument("--frames", type=int, default=None, help="number of frames (default: the whole route)")
     s.add_argument("--seed", type=int, default=0)
     s.set_defaults(func=cmd_dataset_synthetic)
+    from .cli import add_run_options
+
+    c = sub.add_parser("compare", help="NeoSLAM and RatSLAM on the same stream, side by side",
+                       description="Run NeoSLAM, then the RatSLAM baseline (local-view cells), on the same "
+                                   "deterministic stream; print a table and write compare.json and compare.png.")
+    add_run_options(c)
+    c.set_defaults(func=cmd_compare)
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    """NeoSLAM and RatSLAM on the same stream, then a side-by-side table and one plot."""
+    import json
+
+    from .cli import _load, print_summary
+    from .evaluation import evaluate_run
+    from .topology import RunError, run
+
+    out = Path(args.out or "runs/compare")
+    rows = {}
+    for pipeline in ("neoslam", "ratslam"):
+        args.pipeline = pipeline
+        cfg = _load(args)
+        try:
+            res = run(cfg, out / pipeline)
+        except RunError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 1
+        print_summary(res.report)
+        ev = evaluate_run(out / pipeline) if (out / pipeline / "groundtruth.tum").exists() else {}
+        rows[pipeline] = {"report": res.report, "evaluation": ev}
+    table = {}
+    for name, r in rows.items():
+        rep, ev = r["report"], r["evaluation"]
+        table[name] = {
+            "frames_processed": rep.get("frames_out"), "loss": rep.get("loss"),
+            "trajectory_ape_mean_m": ev.get("trajectory_ape", {}).get("mean_m"),
+            "trajectory_ape_max_m": ev.get("trajectory_ape", {}).get("max_m"),
+            "map_paper_mean_m": ev.get("map_paper", {}).get("mean_m"),
+            "map_paper_max_m": ev.get("map_paper", {}).get("max_m"),
+            "loop_closures": ev.get("loop_closures", {}).get("closures"),
+            "loop_precision": ev.get("loop_closures", {}).get("precision"),
+            "stage_tau_p50_ms": {s: v.get("tau_p50_ms") for s, v in rep.get("stages", {}).items()},
+        }
+        if "odometry_ape" in ev:
+            table["odometry"] = {"trajectory_ape_mean_m": ev["odometry_ape"]["mean_m"],
+                                 "trajectory_ape_max_m": ev["odometry_ape"]["max_m"]}
+    (out / "compare.json").write_text(json.dumps(table, indent=2))
+    _print_compare(table)
+    _plot_compare(out)
+    print(f"compare.json and compare.png in {out}")
+    return 0
+
+
+def _print_compare(table: dict) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    t = Table(title="NeoSLAM vs RatSLAM (same stream)")
+    cols = ("frames_processed", "trajectory_ape_mean_m", "trajectory_ape_max_m", "map_paper_mean_m",
+            "map_paper_max_m", "loop_closures", "loop_precision")
+    t.add_column("")
+    for c in cols:
+        t.add_column(c.replace("_", " "), justify="right")
+    for name, row in table.items():
+        t.add_row(name, *[("" if row.get(c) is None else f"{row[c]:.3f}" if isinstance(row.get(c), float)
+                           else str(row[c])) for c in cols])
+    Console().print(t)
+
+
+def _plot_compare(out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .evaluation import associate, read_tum, umeyama_se2
+
+    fig, ax = plt.subplots(figsize=(7, 6))
+    gt = read_tum(out / "neoslam" / "groundtruth.tum") if (out / "neoslam" / "groundtruth.tum").exists() else None
+    if gt is not None:
+        ax.plot(gt[:, 1], gt[:, 2], "k-", lw=1.5, label="ground truth")
+    for name, colour in (("neoslam", "b"), ("ratslam", "m")):
+        f = out / name / "trajectory.tum"
+        if not f.exists():
+            continue
+        tr = read_tum(f)
+        xy = tr[:, 1:3]
+        if gt is not None:
+            ie, ig = associate(tr[:, 0], gt[:, 0])
+            R, t = umeyama_se2(xy[ie], gt[ig, 1:3])
+            xy = xy @ R.T + t
+        ax.plot(xy[:, 0], xy[:, 1], f"{colour}-", lw=0.8, label=name)
+    ax.set_aspect("equal")
+    ax.legend()
+    fig.savefig(out / "compare.png", dpi=110, bbox_inches="tight")
+    plt.close(fig)

@@ -132,6 +132,12 @@ class BinaryProjector:
         if self.projection == "sparse":
             out = (self.matrix.T @ f.T).T
             return np.asarray(out, dtype=np.float32)
+        if f.ndim == 1 or f.shape[0] == 1:
+            # a single row would go through BLAS's matrix-vector kernel, whose rounding differs from
+            # the matrix-matrix kernel of a batch: two rows keep results independent of batching
+            rows = np.atleast_2d(f)
+            out = np.vstack([rows, rows]) @ self.matrix
+            return out[0] if f.ndim == 1 else out[:1]
         return f @ self.matrix
 
     def bits(self, feats: np.ndarray) -> np.ndarray:

@@ -95,3 +95,14 @@ def test_stage_batches_and_validates_length():
 
     with pytest.raises(StageInputError):
         st.process("visual_features", Message("visual_features", 9, 0.0, {"features": np.zeros(7, np.float32)}))
+
+
+def test_projection_does_not_depend_on_batching():
+    # micro-batching must not change results: lossless runs are repeatable whatever the batch sizes
+    bp = P.BinaryProjector(input_dim=3000, seed=4)
+    F = np.random.default_rng(5).standard_normal((8, 3000)).astype(np.float32)
+    whole = bp.project(F)
+    for size in (1, 2, 3, 5):
+        parts = np.concatenate([bp.project(F[i:i + size]) for i in range(0, 8, size)])
+        np.testing.assert_array_equal(parts, whole)
+    np.testing.assert_array_equal(bp.project(F[3]), whole[3])

@@ -66,52 +66,57 @@ def register(sub: argparse._SubParsersAction, bench_sub: argparse._SubParsersAct
     from .cli import add_run_options
 
     c = sub.add_parser("compare", help="NeoSLAM and RatSLAM on the same stream, side by side",
-                       description="Run NeoSLAM, then the RatSLAM baseline (local-view cells), on the same "
-                                   "deterministic stream; print a table and write compare.json and compare.png.")
+                       description="Run NeoSLAM and the RatSLAM baseline (local-view cells) in one run, the image "
+                                   "topic fanned out to both; print a table and write compare.json and "
+                                   "compare.png (RatSLAM's files in OUT/ratslam/).")
     add_run_options(c)
     c.set_defaults(func=cmd_compare)
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
-    """NeoSLAM and RatSLAM on the same stream, then a side-by-side table and one plot."""
+    """NeoSLAM and RatSLAM on the same stream in one run, then a side-by-side table and one plot."""
     import json
+    import shutil
 
     from .cli import _load, print_summary
     from .evaluation import evaluate_run
     from .topology import RunError, run
 
+    args.pipeline = "compare"
+    cfg = _load(args)
     out = Path(args.out or "runs/compare")
-    rows = {}
-    for pipeline in ("neoslam", "ratslam"):
-        args.pipeline = pipeline
-        cfg = _load(args)
-        try:
-            res = run(cfg, out / pipeline)
-        except RunError as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            return 1
-        print_summary(res.report)
-        ev = evaluate_run(out / pipeline) if (out / pipeline / "groundtruth.tum").exists() else {}
-        rows[pipeline] = {"report": res.report, "evaluation": ev}
+    try:
+        res = run(cfg, out)
+    except RunError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    print_summary(res.report)
+    dirs = {"neoslam": out, "ratslam": out / "ratslam"}
+    for name in ("groundtruth.tum", "odometry.tum"):
+        if (out / name).exists():
+            shutil.copy(out / name, dirs["ratslam"] / name)
+    stages = res.report.get("stages", {})
     table = {}
-    for name, r in rows.items():
-        rep, ev = r["report"], r["evaluation"]
-        table[name] = {
-            "frames_processed": rep.get("frames_out"), "loss": rep.get("loss"),
+    for pipeline, d in dirs.items():
+        ev = evaluate_run(d) if (d / "groundtruth.tum").exists() else {}
+        mine = {s: v for s, v in stages.items() if s.startswith("rs_") == (pipeline == "ratslam")}
+        table[pipeline] = {
+            "frames_processed": max((v.get("processed", 0) for s, v in mine.items()
+                                     if s in ("A", "rs_local_view")), default=None),
             "trajectory_ape_mean_m": ev.get("trajectory_ape", {}).get("mean_m"),
             "trajectory_ape_max_m": ev.get("trajectory_ape", {}).get("max_m"),
             "map_paper_mean_m": ev.get("map_paper", {}).get("mean_m"),
             "map_paper_max_m": ev.get("map_paper", {}).get("max_m"),
             "loop_closures": ev.get("loop_closures", {}).get("closures"),
             "loop_precision": ev.get("loop_closures", {}).get("precision"),
-            "stage_tau_p50_ms": {s: v.get("tau_p50_ms") for s, v in rep.get("stages", {}).items()},
+            "stage_tau_p50_ms": {s: v.get("tau_p50_ms") for s, v in mine.items()},
         }
-        if "odometry_ape" in ev:
+        if pipeline == "neoslam" and "odometry_ape" in ev:
             table["odometry"] = {"trajectory_ape_mean_m": ev["odometry_ape"]["mean_m"],
                                  "trajectory_ape_max_m": ev["odometry_ape"]["max_m"]}
     (out / "compare.json").write_text(json.dumps(table, indent=2))
     _print_compare(table)
-    _plot_compare(out)
+    _plot_compare(dirs)
     print(f"compare.json and compare.png in {out}")
     return 0
 
@@ -124,15 +129,24 @@ def _print_compare(table: dict) -> None:
     cols = ("frames_processed", "trajectory_ape_mean_m", "trajectory_ape_max_m", "map_paper_mean_m",
             "map_paper_max_m", "loop_closures", "loop_precision")
     t.add_column("")
-    for c in cols:
-        t.add_column(c.replace("_", " "), justify="right")
+    short = ("frames", "APE mean m", "APE max m", "paper mean m", "paper max m", "loops", "precision")
+    for c in short:
+        t.add_column(c, justify="right")
     for name, row in table.items():
         t.add_row(name, *[("" if row.get(c) is None else f"{row[c]:.3f}" if isinstance(row.get(c), float)
                            else str(row[c])) for c in cols])
-    Console().print(t)
+    con = Console()
+    con.print(t)
+    lat = Table(title="per-stage latency (tau p50, ms)")
+    lat.add_column("pipeline")
+    lat.add_column("stages")
+    for name, row in table.items():
+        taus = row.get("stage_tau_p50_ms") or {}
+        lat.add_row(name, ", ".join(f"{s}: {v:.1f}" for s, v in taus.items() if v is not None))
+    con.print(lat)
 
 
-def _plot_compare(out: Path) -> None:
+def _plot_compare(dirs: dict[str, Path]) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -141,11 +155,12 @@ def _plot_compare(out: Path) -> None:
     from .evaluation import associate, read_tum, umeyama_se2
 
     fig, ax = plt.subplots(figsize=(7, 6))
-    gt = read_tum(out / "neoslam" / "groundtruth.tum") if (out / "neoslam" / "groundtruth.tum").exists() else None
+    out = dirs["neoslam"]
+    gt = read_tum(out / "groundtruth.tum") if (out / "groundtruth.tum").exists() else None
     if gt is not None:
         ax.plot(gt[:, 1], gt[:, 2], "k-", lw=1.5, label="ground truth")
     for name, colour in (("neoslam", "b"), ("ratslam", "m")):
-        f = out / name / "trajectory.tum"
+        f = dirs[name] / "trajectory.tum"
         if not f.exists():
             continue
         tr = read_tum(f)

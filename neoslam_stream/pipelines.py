@@ -97,11 +97,34 @@ def build_ratslam(cfg: FullRunConfig) -> PipelinePlan:
     return PipelinePlan(specs, final_topic="experience_map/pose", entry_stages=["local_view"])
 
 
+RATSLAM_BRANCH_TOPICS = ("visual_template", "pose_cells/action", "experience_map/pose", "experience_map/map")
+
+
+def build_compare(cfg: FullRunConfig) -> PipelinePlan:
+    """NeoSLAM and the RatSLAM baseline in one run: the image (and odometry) topics fan out to both.
+
+    The RatSLAM branch's stages are prefixed ``rs_``, publish under ``ratslam/...`` and write their
+    files into ``<run folder>/ratslam/``.
+    """
+    plan = build_neoslam(cfg)
+    rs = build_ratslam(cfg)
+    remap = {t: f"ratslam/{t}" for t in RATSLAM_BRANCH_TOPICS}
+    for spec in rs.stages:
+        spec.name = f"rs_{spec.name}"
+        spec.remap = dict(remap)
+        spec.output_subdir = "ratslam"
+        if spec.factory.endswith("make_visual_odometry_stage"):  # one odometry for both branches
+            continue
+        plan.stages.append(spec)
+    return plan
+
+
 #: pipeline name -> builder(config) -> PipelinePlan
 PIPELINES: dict[str, Any] = {
     "emulated": build_emulated,
     "neoslam": build_neoslam,
     "ratslam": build_ratslam,
+    "compare": build_compare,
 }
 
 #: source kind -> "module:factory"

@@ -89,6 +89,10 @@ class StageSpec:
     params: dict[str, Any] = field(default_factory=dict)
     #: torch / BLAS / numba threads for this worker (2 cores are shared by ~7 processes).
     threads: int = 1
+    #: adapter topic -> bus topic, to run two copies of a stage side by side (e.g. ``neoslam compare``)
+    remap: dict[str, str] = field(default_factory=dict)
+    #: sub-folder of the run folder for the files this stage writes ("" = the run folder itself)
+    output_subdir: str = ""
 
     def build(self) -> StageAdapter:
         module_name, _, attr = self.factory.partition(":")

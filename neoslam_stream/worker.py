@@ -98,11 +98,16 @@ class ServiceStats:
 
 
 class StageRuntime:
-    """One hosted adapter with its counters."""
+    """One hosted adapter with its counters and its topic names on the bus."""
 
-    def __init__(self, adapter: StageAdapter) -> None:
+    def __init__(self, adapter: StageAdapter, remap: dict[str, str] | None = None) -> None:
         self.adapter = adapter
         self.name = adapter.name
+        remap = remap or {}
+        self.inputs = [remap.get(t, t) for t in adapter.inputs]
+        self.outputs = [remap.get(t, t) for t in adapter.outputs]
+        self.to_adapter = {remap.get(t, t): t for t in adapter.inputs}
+        self.to_bus = {t: remap.get(t, t) for t in adapter.outputs}
         self.received = 0
         self.processed = 0
         self.published: dict[str, int] = defaultdict(int)
@@ -141,13 +146,15 @@ class Worker:
     def build(self) -> None:
         for s in self.spec.stages:
             adapter = s.build()
-            adapter.run_dir = self.spec.run_dir  # type: ignore[attr-defined]
-            self.stages.append(StageRuntime(adapter))
+            out_dir = os.path.join(self.spec.run_dir, s.output_subdir) if s.output_subdir else self.spec.run_dir
+            os.makedirs(out_dir, exist_ok=True)
+            adapter.run_dir = out_dir  # type: ignore[attr-defined]
+            self.stages.append(StageRuntime(adapter, s.remap))
         for i, st in enumerate(self.stages):
-            for t in st.adapter.inputs:
+            for t in st.inputs:
                 self.consumers[t].append(i)
         for i, st in enumerate(self.stages):
-            for t in st.adapter.outputs:
+            for t in st.outputs:
                 if any(j > i for j in self.consumers.get(t, [])):
                     self.produced_inside.add(t)
 
@@ -165,7 +172,7 @@ class Worker:
     def external_inputs(self) -> list[str]:
         seen: list[str] = []
         for st in self.stages:
-            for t in st.adapter.inputs:
+            for t in st.inputs:
                 if t not in self.produced_inside and t not in seen:
                     seen.append(t)
         return seen
@@ -179,7 +186,7 @@ class Worker:
             self.bus.subscribe(t, self.queue)
         self.bus.subscribe_callback(key_for(self.spec.run, "control"), self._on_control)
         for st in self.stages:
-            for t in st.adapter.outputs:
+            for t in st.outputs:
                 if t not in self.produced_inside or t in self.spec.publish_internal:
                     self.bus.publisher(t)
 
@@ -222,11 +229,12 @@ class Worker:
         st.received += len(msgs)
         self._maybe_checkpoint(st, min(m.frame for m in msgs))
         started = time.time()
+        local = st.to_adapter.get(topic, topic)
         try:
             if len(msgs) == 1:
-                outputs = st.adapter.process(topic, msgs[0])
+                outputs = st.adapter.process(local, msgs[0])
             else:
-                outputs = st.adapter.process_batch(topic, msgs)
+                outputs = st.adapter.process_batch(local, msgs)
         except (StageInputError, MessageError, ValueError) as exc:
             st.record_error(f"{type(exc).__name__}: {exc}")
             if len(msgs) > 1:  # retry one by one so one bad frame does not cost its batch-mates
@@ -253,7 +261,9 @@ class Worker:
     def _emit(self, idx: int, outputs: list[tuple[str, Message]], stage: str,
               received_by_frame: dict[int, float], started: float, finished: float) -> None:
         grouped: dict[str, list[Message]] = defaultdict(list)
-        for topic, out in outputs:
+        to_bus = self.stages[idx].to_bus
+        for local, out in outputs:
+            topic = to_bus.get(local, local)
             r = received_by_frame.get(out.frame, started)
             out.trace.append((stage, r, started, finished))
             if topic not in self.produced_inside or topic in self.spec.publish_internal:
@@ -316,7 +326,7 @@ class Worker:
         now = time.time()
         for i, st in enumerate(self.stages):
             inputs = {}
-            for t in st.adapter.inputs:
+            for t in st.inputs:
                 if t in qstats and self.consumers[t][0] == i:
                     inputs[t] = {"received": qstats[t].received, "evicted": qstats[t].evicted,
                                  "depth": depth.get(t, 0)}
@@ -328,8 +338,8 @@ class Worker:
                     "started": self._started, "received": st.received, "processed": st.processed,
                     "published": dict(st.published), "errors": st.errors,
                     "error_causes": dict(st.error_causes), "counters": dict(st.adapter.counters),
-                    "inputs": inputs, "outputs": list(st.adapter.outputs),
-                    "consumes": list(st.adapter.inputs), "last_frame": st.last_frame,
+                    "inputs": inputs, "outputs": list(st.outputs),
+                    "consumes": list(st.inputs), "last_frame": st.last_frame,
                     "info": info, "cpu_percent": cpu, "rss_mb": rss, "final": final,
                     "n_stages_in_worker": len(self.stages), **st.times.summary()}
             out.append(Message("stats", 0, now, data))

@@ -33,6 +33,8 @@ WALLS = np.array([
     (8.5, 8, 8.5, 6.8, 11),
 ], dtype=np.float64)
 WALL_HEIGHT = 1.2
+TEX_PX_PER_M = 200
+TEX_ROWS = 256
 CAMERA_HEIGHT = 0.6
 #: the route: the middle of the ring corridor (clockwise seen from above)
 ROUTE = np.array([(1.5, 1.25), (8.5, 1.25), (8.5, 6.6), (1.5, 6.6), (1.5, 1.25)])
@@ -71,7 +73,57 @@ class SyntheticWorld:
         self.rows = np.arange(height)[:, None] + 0.5
 
     def cast(self, x: float, y: float, th: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Per column: distance along the ray, texture id, coordinate along the wall (m)."""
+        """Per column: perpendicular distance, texture id, coordinate along the wall (m)."""
+        return self.cast_walls(x, y, th)
+
+    def _build_atlas(self) -> None:
+        """Every wall's texture rendered once into an image (TEX_PX_PER_M columns per metre, TEX_ROWS
+        rows over the wall's height), so a frame is a gather, not a pattern evaluation per pixel."""
+        T = self.tex
+        lens = np.hypot(self.walls[:, 2] - self.walls[:, 0], self.walls[:, 3] - self.walls[:, 1])
+        width = int(np.ceil(lens.max() * TEX_PX_PER_M)) + 1
+        u = (np.arange(width) / TEX_PX_PER_M)[None, :]
+        v = ((np.arange(TEX_ROWS) + 0.5) / TEX_ROWS)[:, None]
+        atlas = np.zeros((len(self.walls), TEX_ROWS, width, 3), dtype=np.float32)
+        for k in range(len(self.walls)):
+            tid = int(self.walls[k, 4])
+            f, p, vf = T["freq"][tid], T["phase"][tid], T["vfreq"][tid]
+            pattern = (0.5 + 0.25 * np.sin(f[0] * u * np.pi + p[0])
+                       + 0.15 * np.sin(f[1] * u * 2 * np.pi + vf[0] * v * 6 + p[1])
+                       + 0.1 * np.sign(np.sin(vf[1] * v * 2 * np.pi * 3 + f[2] * u)))
+            for bl in range(4):  # large-scale landmarks: dark blobs positioned by the texture's seed
+                cu, cv = T["blob"][tid, bl, 0] * 5.0, T["blob"][tid, bl, 1]
+                pattern = pattern - 0.35 * np.exp(-(((u - cu) / 0.35) ** 2 + ((v - cv) / 0.18) ** 2))
+            atlas[k] = np.clip(pattern, 0, 1)[..., None] * T["colour"][tid][None, None]
+        self.atlas = atlas
+        # floor and ceiling shading depends on the row only
+        h2 = self.height / 2
+        r = self.rows
+        floor_d = np.where(r > h2, self.focal * CAMERA_HEIGHT / np.maximum(r - h2, 1e-3), np.inf)
+        ceil_d = np.where(r < h2, self.focal * (WALL_HEIGHT - CAMERA_HEIGHT) / np.maximum(h2 - r, 1e-3), np.inf)
+        bg = np.where(r > h2, 0.45 / (1 + 0.3 * floor_d), 0.8 / (1 + 0.3 * ceil_d))
+        self.background = (bg[..., None] * np.array([0.9, 0.85, 0.8])).astype(np.float32)  # (H, 1, 3)
+
+    def render(self, x: float, y: float, th: float) -> np.ndarray:
+        if not hasattr(self, "atlas"):
+            self._build_atlas()
+        dist, _tid, along = self.cast_walls(x, y, th)
+        seg = self._hit_wall
+        dist = np.maximum(dist, 0.05)
+        h2 = self.height / 2
+        top = h2 - self.focal * (WALL_HEIGHT - CAMERA_HEIGHT) / dist
+        bottom = h2 + self.focal * CAMERA_HEIGHT / dist
+        v = (self.rows - top[None]) / (bottom - top)[None]  # 0 at the top of the wall, 1 at the floor
+        inside = (v >= 0) & (v < 1)
+        vi = np.clip((v * TEX_ROWS).astype(np.int32), 0, TEX_ROWS - 1)
+        ui = np.minimum((along * TEX_PX_PER_M).astype(np.int32), self.atlas.shape[2] - 1)
+        cols = self.atlas[seg[None, :], vi, ui[None, :]]  # (H, W, 3)
+        shade = (1.0 / (1.0 + 0.15 * dist)).astype(np.float32)[None, :, None]
+        img = np.where(inside[..., None], cols * shade, self.background)
+        return (img * 255).astype(np.uint8)
+
+    def cast_walls(self, x: float, y: float, th: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`cast`, remembering which wall segment each column hit (for the texture atlas)."""
         ang = th + self.col_angles
         dx, dy = np.cos(ang)[:, None], np.sin(ang)[:, None]
         x0, y0, x1, y1 = (self.walls[:, i][None] for i in range(4))
@@ -84,38 +136,10 @@ class SyntheticWorld:
         t = np.where(valid, t, np.inf)
         k = np.argmin(t, axis=1)
         cols = np.arange(len(k))
-        dist = t[cols, k] * np.cos(self.col_angles)  # perpendicular distance: no fish-eye
+        self._hit_wall = k
+        dist = t[cols, k] * np.cos(self.col_angles)
         seglen = np.hypot(ex, ey)[0, k]
         return dist, self.walls[k, 4].astype(int), u[cols, k] * seglen
-
-    def render(self, x: float, y: float, th: float) -> np.ndarray:
-        dist, tid, along = self.cast(x, y, th)
-        dist = np.maximum(dist, 0.05)
-        h2 = self.height / 2
-        top = h2 - self.focal * (WALL_HEIGHT - CAMERA_HEIGHT) / dist
-        bottom = h2 + self.focal * CAMERA_HEIGHT / dist
-        r = self.rows
-        v = (r - top[None]) / (bottom - top)[None]  # 0 at the top of the wall, 1 at the floor
-        inside = (v >= 0) & (v <= 1)
-        T = self.tex
-        f, p, vf = T["freq"][tid], T["phase"][tid], T["vfreq"][tid]
-        u = along[None]
-        pattern = (0.5 + 0.25 * np.sin(f[None, :, 0] * u * 2 * np.pi / 2 + p[None, :, 0])
-                   + 0.15 * np.sin(f[None, :, 1] * u * 2 * np.pi + vf[None, :, 0] * v * 6 + p[None, :, 1])
-                   + 0.1 * np.sign(np.sin(vf[None, :, 1] * v * 2 * np.pi * 3 + f[None, :, 2] * u)))
-        # large-scale landmarks: a few dark blobs per wall, positioned by the texture's seed
-        for b in range(4):
-            cu = T["blob"][tid, b, 0] * 5.0
-            cv = T["blob"][tid, b, 1]
-            pattern -= 0.35 * np.exp(-(((u - cu) / 0.35) ** 2 + ((v - cv) / 0.18) ** 2))
-        shade = 1.0 / (1.0 + 0.15 * dist)[None]
-        wall = np.clip(pattern * shade, 0, 1)[..., None] * T["colour"][tid][None]
-        floor_d = np.where(r > h2, self.focal * CAMERA_HEIGHT / np.maximum(r - h2, 1e-3), np.inf)
-        ceil_d = np.where(r < h2, self.focal * (WALL_HEIGHT - CAMERA_HEIGHT) / np.maximum(h2 - r, 1e-3), np.inf)
-        bg = np.where(r > h2, 0.45 / (1 + 0.3 * floor_d), 0.8 / (1 + 0.3 * ceil_d))
-        bg = np.broadcast_to(bg, (self.height, self.width))[..., None] * np.array([0.9, 0.85, 0.8])
-        img = np.where(inside[..., None], wall, bg)
-        return (img * 255).astype(np.uint8)
 
 
 class SyntheticWorldSource(Source):

@@ -97,6 +97,8 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="fewer repetitions, K up to 10k, Nordland subset")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "frontend.json"))
+    ap.add_argument("--timing-only", action="store_true",
+                    help="re-measure A, B, D and keep the Nordland results already in --out")
     ap.add_argument("--tm-compare", action="store_true",
                     help="only compare the TM tie rules on Nordland (real neocortex) and merge into --out")
     args = ap.parse_args()
@@ -104,7 +106,10 @@ def main() -> None:
         compare_tie_rules(Path(args.out))
         return
     reps = 10 if args.quick else 30
+    previous = json.loads(Path(args.out).read_text()) if Path(args.out).exists() else {}
     res: dict = {"threads": args.threads}
+    if args.timing_only:
+        res.update({k: v for k, v in previous.items() if k.startswith("nordland") or k == "backbone"})
     a1, ab = bench_a("random_alexnet", reps, 8, args.threads)
     res.update({"a_ms_batch1": a1, "a_ms_batched": ab, "a_backbone_timed": "random_alexnet (same cost as alexnet)"})
     e1, eb = bench_a("efficientnet_lite0", reps, 8, args.threads)
@@ -117,7 +122,7 @@ def main() -> None:
         print("D", k, res[f"d_ms_k{k}"], flush=True)
     if args.quick:
         res["d_ms_k100000"] = None
-    if DATA.is_dir():
+    if DATA.is_dir() and not args.timing_only:
         svc = dict(theta_alpha=384, theta_rho=3, theta_sigma=470, exclude_recent_intervals=3)
         step = 8 if args.quick else 2
         runs = {}

@@ -79,6 +79,14 @@ class StageAdapter:
         pass
 
 
+def load_factory(path: str) -> Any:
+    """The callable named by ``"package.module:callable"``."""
+    module_name, _, attr = path.partition(":")
+    if not module_name or not attr:
+        raise ValueError(f"factory {path!r} must look like 'package.module:callable'")
+    return getattr(importlib.import_module(module_name), attr)
+
+
 @dataclass
 class StageSpec:
     """How to build one adapter in a worker process: ``factory`` is ``"package.module:callable"``
@@ -95,11 +103,7 @@ class StageSpec:
     output_subdir: str = ""
 
     def build(self) -> StageAdapter:
-        module_name, _, attr = self.factory.partition(":")
-        if not attr:
-            raise ValueError(f"stage factory {self.factory!r} must look like 'package.module:callable'")
-        obj = getattr(importlib.import_module(module_name), attr)
-        adapter = obj(**self.params)
+        adapter = load_factory(self.factory)(**self.params)
         if not isinstance(adapter, StageAdapter):
             raise TypeError(f"{self.factory} returned {type(adapter).__name__}, not a StageAdapter")
         adapter.name = self.name

@@ -10,23 +10,10 @@ from typing import Any
 import cv2
 import numpy as np
 
+from ..evaluation import read_tum
 from .base import Source, SourceFrame
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".ppm", ".pgm")
-
-
-def read_tum_rows(path: Path) -> np.ndarray:
-    """(n, 4): stamp, x, y, yaw."""
-    rows = []
-    for line in path.read_text().splitlines():
-        if not line.strip() or line.startswith("#"):
-            continue
-        p = [float(v) for v in line.replace(",", " ").split()]
-        if len(p) < 8:
-            raise ValueError(f"{path}: a TUM line needs 8 values (t x y z qx qy qz qw), got {len(p)}")
-        t, x, y, _z, qx, qy, qz, qw = p[:8]
-        rows.append((t, x, y, math.atan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz))))
-    return np.array(rows).reshape(-1, 4)
 
 
 def odometry_between(odo: np.ndarray, t0: float, t1: float) -> tuple[float, float, float]:
@@ -63,8 +50,8 @@ class ImageFolderSource(Source):
         self.length = len(self.files)
         odo_path = Path(odometry) if odometry else root / "odometry.tum"
         gt_path = Path(groundtruth) if groundtruth else root / "groundtruth.tum"
-        self.odo = read_tum_rows(odo_path) if odo_path.exists() else None
-        self.gt = read_tum_rows(gt_path) if gt_path.exists() else None
+        self.odo = read_tum(odo_path) if odo_path.exists() else None
+        self.gt = read_tum(gt_path) if gt_path.exists() else None
         self.root = root
 
     def __iter__(self) -> Iterator[SourceFrame]:

@@ -18,7 +18,6 @@ closes its session.
 
 from __future__ import annotations
 
-import importlib
 import logging
 import math
 import signal
@@ -32,7 +31,9 @@ from typing import Any
 import numpy as np
 
 from ..bus import Bus, key_for, open_session
+from ..evaluation import write_tum
 from ..messages import Message, decode, encode
+from ..stage import load_factory
 from .base import Source
 
 log = logging.getLogger("neoslam.source")
@@ -46,10 +47,7 @@ class SourceSpec:
     params: dict[str, Any] = field(default_factory=dict)
 
     def build(self) -> Source:
-        module_name, _, attr = self.factory.partition(":")
-        if not attr:
-            raise ValueError(f"source factory {self.factory!r} must look like 'package.module:callable'")
-        src = getattr(importlib.import_module(module_name), attr)(**self.params)
+        src = load_factory(self.factory)(**self.params)
         if not isinstance(src, Source):
             raise TypeError(f"{self.factory} returned {type(src).__name__}, not a Source")
         return src
@@ -130,14 +128,6 @@ def frame_messages(sf: Any, published_at: float) -> list[tuple[str, Message]]:
         out.append(("groundtruth", Message("groundtruth", sf.frame, sf.stamp,
                                            {"pose": np.asarray(sf.groundtruth, dtype=np.float64)})))
     return out
-
-
-def _write_tum(path: Path, rows: list[tuple[float, float, float, float]]) -> None:
-    if not rows:
-        return
-    with open(path, "w") as fh:
-        for t, x, y, yaw in rows:
-            fh.write(f"{t:.6f} {x:.6f} {y:.6f} 0 0 0 {math.sin(yaw / 2):.9f} {math.cos(yaw / 2):.9f}\n")
 
 
 def run_source(spec: SourceRunSpec) -> None:
@@ -264,8 +254,9 @@ def run_source(spec: SourceRunSpec) -> None:
     finally:
         if bar is not None:
             bar.stop()
-        _write_tum(Path(spec.run_dir) / "groundtruth.tum", gt_rows)
-        _write_tum(Path(spec.run_dir) / "odometry.tum", odo_rows)
+        for name, rows in (("groundtruth.tum", gt_rows), ("odometry.tum", odo_rows)):
+            if rows:
+                write_tum(Path(spec.run_dir) / name, rows)
         publish_stats(final=True)
         time.sleep(0.3)
         token.undeclare()

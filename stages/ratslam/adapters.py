@@ -186,10 +186,10 @@ class ExperienceMapStage(StageAdapter):
 def write_run_outputs(run_dir: Path, export: dict[str, Any], trajectory: list) -> None:
     """map.json and trajectory.tum (one experience-map pose per frame, TUM: t x y z qx qy qz qw)."""
     run_dir.mkdir(parents=True, exist_ok=True)
+    from neoslam_stream.evaluation import write_tum
+
     (run_dir / "map.json").write_text(json.dumps(export))
-    with open(run_dir / "trajectory.tum", "w") as fh:
-        for _frame, stamp, x, y, th, _e in trajectory:
-            fh.write(f"{stamp:.6f} {x:.6f} {y:.6f} 0 0 0 {math.sin(th / 2):.9f} {math.cos(th / 2):.9f}\n")
+    write_tum(run_dir / "trajectory.tum", [(stamp, x, y, th) for _f, stamp, x, y, th, _e in trajectory])
 
 
 class LocalViewStage(StageAdapter):

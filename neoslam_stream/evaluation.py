@@ -142,6 +142,14 @@ def plot_map(run_dir: Path, gt: np.ndarray, traj: np.ndarray, mp: dict, result: 
     ie, ig = associate(traj[:, 0], gt[:, 0])
     R, t = umeyama_se2(traj[ie, 1:3], gt[ig, 1:3])
     fig, ax = plt.subplots(figsize=(7, 6))
+    tpl = run_dir / "templates.csv"
+    if tpl.exists():  # first, so that the paths stay visible on top of them
+        rows = np.loadtxt(tpl, delimiter=",", skiprows=1, ndmin=2)
+        if rows.size:
+            lc = rows[rows[:, 3] > 0]
+            _, gi = associate(lc[:, 1], gt[:, 0], max_dt=1.0)
+            ax.plot(gt[gi, 1], gt[gi, 2], "o", color="limegreen", ms=7, alpha=0.25, mec="none",
+                    label="loop closure (true position)")
     ax.plot(gt[:, 1], gt[:, 2], "k-", lw=1.5, label="ground truth")
     odo_file = run_dir / "odometry.tum"
     if odo_file.exists():
@@ -158,13 +166,6 @@ def plot_map(run_dir: Path, gt: np.ndarray, traj: np.ndarray, mp: dict, result: 
     if nodes:
         pts = np.array(list(nodes.values()))
         ax.plot(pts[:, 0], pts[:, 1], "b.", ms=3, label="experience map")
-    tpl = run_dir / "templates.csv"
-    if tpl.exists():
-        rows = np.loadtxt(tpl, delimiter=",", skiprows=1, ndmin=2)
-        if rows.size:
-            lc = rows[rows[:, 3] > 0]
-            _, gi = associate(lc[:, 1], gt[:, 0], max_dt=1.0)
-            ax.plot(gt[gi, 1], gt[gi, 2], "g+", ms=6, label="loop closure (true position)")
     ax.set_aspect("equal")
     ax.legend(loc="best", fontsize=8)
     ape_m = result.get("trajectory_ape", {}).get("mean_m", float("nan"))

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
+from numba import njit
 from pydantic import BaseModel, ConfigDict, Field
 
 from neoslam_stream.messages import Message
@@ -89,6 +90,24 @@ def sparse_matrix(n: int, seed: int, m: int = N_PROJ) -> Any:
     return sp.csr_matrix((vals, (rows, cols)), shape=(n, m), dtype=np.float32)
 
 
+@njit(cache=True)
+def _project_rows(F, W, out):  # pragma: no cover - compiled
+    """out[r] = F[r] @ W, summing over W's rows in order for every output element.
+
+    BLAS rounds a matrix-vector product differently from a matrix-matrix one, so a frame's bits
+    would depend on how many frames were batched with it; here the summation order is fixed, so
+    results are identical for any batch size (and lossless runs are repeatable). One pass over W
+    serves the whole batch (micro-batching amortises the 265 MB read).
+    """
+    n, m = W.shape
+    for i in range(n):
+        for r in range(F.shape[0]):
+            a = F[r, i]
+            if a != 0.0:
+                for j in range(m):
+                    out[r, j] += a * W[i, j]
+
+
 def slsbh(d: np.ndarray, sparsity: float = 0.25) -> np.ndarray:
     """sLSBH bits of one projected vector: sorted uint16 indices, exactly 2*round(m*sparsity).
 
@@ -132,13 +151,10 @@ class BinaryProjector:
         if self.projection == "sparse":
             out = (self.matrix.T @ f.T).T
             return np.asarray(out, dtype=np.float32)
-        if f.ndim == 1 or f.shape[0] == 1:
-            # a single row would go through BLAS's matrix-vector kernel, whose rounding differs from
-            # the matrix-matrix kernel of a batch: two rows keep results independent of batching
-            rows = np.atleast_2d(f)
-            out = np.vstack([rows, rows]) @ self.matrix
-            return out[0] if f.ndim == 1 else out[:1]
-        return f @ self.matrix
+        rows = np.ascontiguousarray(np.atleast_2d(f))
+        out = np.zeros((rows.shape[0], self.matrix.shape[1]), dtype=np.float32)
+        _project_rows(rows, self.matrix, out)
+        return out[0] if f.ndim == 1 else out
 
     def bits(self, feats: np.ndarray) -> np.ndarray:
         return slsbh(self.project(feats), self.sparsity)
@@ -168,6 +184,7 @@ class ProjectorStage(StageAdapter):
         except ImportError:
             pass
         self.projector = BinaryProjector(**self.config.model_dump(exclude={"threads"}))
+        self.projector.project(np.zeros(self.config.input_dim, np.float32))  # compile before frames come
 
     def process(self, topic: str, msg: Message) -> Output:
         return self.process_batch(topic, [msg])

@@ -237,7 +237,7 @@ def stats_table(stats: dict[str, dict[str, Any]], title: str = "neoslam") -> Any
     src = stats.get("source")
     if src is not None:
         table.add_row("source", "", str(src.get("frames_in", 0)), "", "", "", "", "", "", "", "")
-    for name, st in sorted(stats.items(), key=lambda kv: kv[1].get("time", 0) and kv[0]):
+    for name, st in sorted(stats.items()):
         if name == "source":
             continue
         active = max(1e-9, now - st.get("started", now))

@@ -34,6 +34,8 @@ bench: setup
 	$(BIN)/python bench/frontend.py
 	$(BIN)/python bench/tm.py
 	$(BIN)/python bench/ratslam.py
+	$(BIN)/python bench/e2e.py
+	$(BIN)/neoslam bench emulate --no-live --out bench/results/emulate
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .ruff_cache

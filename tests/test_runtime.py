@@ -84,7 +84,7 @@ def _start_run(tmp_path: Path, frames: int, rate: float, taus: list[float], mode
                             text=True)
 
 
-def _attach(tmp_path: Path, timeout: float = 60.0):
+def _attach(tmp_path: Path, timeout: float = 240.0):
     ep_file = tmp_path / "run" / "endpoints.json"
     deadline = time.monotonic() + timeout
     while not ep_file.exists():
@@ -96,7 +96,7 @@ def _attach(tmp_path: Path, timeout: float = 60.0):
     return session, ep["run"]
 
 
-def _wait_stats(session, run_id: str, stage: str, timeout: float = 120.0) -> dict:
+def _wait_stats(session, run_id: str, stage: str, timeout: float = 240.0) -> dict:
     got = {}
     sub = session.declare_subscriber(key_for(run_id, f"stats/{stage}"),
                                      lambda s: got.update(decode(s.payload.to_bytes()).data))
@@ -108,7 +108,7 @@ def _wait_stats(session, run_id: str, stage: str, timeout: float = 120.0) -> dic
     return got
 
 
-def _finish(proc: subprocess.Popen, timeout: float = 120.0) -> str:
+def _finish(proc: subprocess.Popen, timeout: float = 400.0) -> str:
     out, _ = proc.communicate(timeout=timeout)
     return out
 

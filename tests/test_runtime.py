@@ -170,7 +170,7 @@ def test_sigint_stops_everything_and_writes_the_report(tmp_path):
     assert len(children) >= 4  # monitor, 2 workers, source
     time.sleep(1.0)
     proc.send_signal(signal.SIGINT)
-    _finish(proc, timeout=60)
+    _finish(proc, timeout=300)
     assert proc.returncode == 130
     report = json.loads((tmp_path / "run" / "report.json").read_text())
     assert report["interrupted"] is True

@@ -253,6 +253,11 @@ class Supervisor:
             if self.lossless:
                 if self.collector.quiet(self._stage_names(), for_s=1.0, fresh_s=1.5):
                     return False
+                # a message lost in transport would keep the strict check false for ever
+                if waited > 20 and self.collector.quiet(self._stage_names(), for_s=10.0, fresh_s=1.5,
+                                                        check_transport=False):
+                    log.warning("pipeline idle but not every published message arrived; ending the run")
+                    return False
                 if waited > 600:
                     log.warning("pipeline did not drain within 600 s after the source ended")
                     return False

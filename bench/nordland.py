@@ -1,15 +1,29 @@
-"""Nordland summer -> winter through A, B, (C) and D: loop-closure precision and recall.
+"""Nordland summer -> winter through A, B, C and D: loop-closure precision and recall.
 
 Shared by bench/frontend.py and tests/test_frontend_nordland.py. Summer frames are streamed first,
-then winter frames; the seasons are frame-aligned, so winter frame i shows the place of summer frame
-i. A winter frame's loop closure is correct when the template it matched was created within
-+-``tolerance`` source frames of that place during the summer pass. Recall = correct closures /
-winter frames.
+then winter frames, as one sequence through the stage adapters (``image`` -> ``visual_features`` ->
+``bin_features`` -> ``sdr`` -> ``visual_template``); the seasons are frame-aligned, so winter frame i
+shows the place of summer frame i. A winter frame's loop closure is correct when the template it
+matched was created within +-``tolerance`` source frames of that place during the summer pass.
+Recall = correct closures / winter frames.
+
+Protocol choices (documented in docs/frontend.md):
+
+* ``step``: every step-th thumbnail (the thumbnails are already every 10th source frame).
+* ``min_std``: places where either season's frame is featureless (grey-level standard deviation
+  below ``min_std``, i.e. tunnels and night-dark frames) are left out of *both* passes, as the usual
+  Nordland protocol leaves out tunnels: all tunnels look alike, and any appearance-based matcher
+  confuses them (they were most of the wrong high-score matches).
+* ``theta_sigma=None`` in a parameter set: calibrated on the summer pass alone as the
+  ``quantile``-th percentile of the sLSBH overlaps between summer frames more than ``tolerance``
+  source frames apart (a false-match rate of 1 - quantile/100 on the reference season; no winter
+  frame is looked at).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -17,14 +31,39 @@ import numpy as np
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "nordland_64x32"
 
 
-def load_frames(step: int, limit: int | None = None) -> tuple[list[np.ndarray], list[np.ndarray], list[int]]:
+def load_frames(step: int, limit: int | None = None,
+                min_std: float | None = None) -> tuple[list[np.ndarray], list[np.ndarray], list[int]]:
+    """RGB summer and winter frames of every step-th place, and the places' source frame numbers."""
     names = sorted(p.name for p in (DATA / "summer").glob("images-*.png"))[::step]
     if limit:
         names = names[:limit]
-    summer = [cv2.imread(str(DATA / "summer" / n))[:, :, ::-1] for n in names]
-    winter = [cv2.imread(str(DATA / "winter" / n))[:, :, ::-1] for n in names]
-    ids = [int(n[7:12]) for n in names]
+    summer, winter, ids = [], [], []
+    for n in names:
+        s = cv2.imread(str(DATA / "summer" / n))[:, :, ::-1]
+        w = cv2.imread(str(DATA / "winter" / n))[:, :, ::-1]
+        if min_std is not None and min(s.std(), w.std()) < min_std:
+            continue
+        summer.append(s)
+        winter.append(w)
+        ids.append(int(n[7:12]))
     return summer, winter, ids
+
+
+def overlaps(bits: list[np.ndarray], n_bits: int = 2048) -> np.ndarray:
+    """Pairwise |b_i & b_j| of sorted bit-index arrays."""
+    m = np.zeros((len(bits), n_bits), np.float32)
+    for i, b in enumerate(bits):
+        m[i, b] = 1.0
+    return (m @ m.T).astype(np.int64)
+
+
+def calibrate_theta_sigma(summer_bits: list[np.ndarray], ids: list[int], tolerance: int,
+                          quantile: float = 99.9) -> int:
+    """The quantile-th percentile of overlaps between summer frames more than ``tolerance`` apart."""
+    o = overlaps(summer_bits)
+    a = np.asarray(ids)
+    far = np.abs(a[:, None] - a[None, :]) > tolerance
+    return int(np.floor(np.percentile(o[far], quantile)))
 
 
 def passthrough_neocortex(bits: np.ndarray, cells_per_column: int = 32) -> np.ndarray:
@@ -54,27 +93,79 @@ def evaluate(template_ids: list[int], loops: list[bool], source_ids: list[int], 
 
 
 def run_frontend(backbone: str, step: int, svc_params: list[dict], tolerance: int = 150,
-                 limit: int | None = None, neocortex=None, projection: str = "gaussian", seed: int = 42) -> list[dict]:
-    """Extract and project once, then run the spatial-view cells once per parameter set."""
-    from stages.features import VisualFeatureExtractor
-    from stages.projector import BinaryProjector
-    from stages.spatial_view import SpatialViewCells
+                 limit: int | None = None, neocortex: Any = "passthrough", projection: str = "gaussian",
+                 seed: int = 42, centre_window: int = 0, min_std: float | None = None,
+                 quantile: float = 99.9) -> list[dict]:
+    """Stream summer then winter through the adapters of A, B and C once, then D per parameter set.
 
-    summer, winter, ids = load_frames(step, limit)
-    fx = VisualFeatureExtractor(backbone=backbone, seed=seed)
-    proj = BinaryProjector(input_dim=fx.output_dim, projection=projection, seed=seed)
+    ``neocortex``: ``"passthrough"`` (cell 0 of each active column), ``"tm"`` (the real
+    ``stages.neocortex`` adapter with its defaults), a dict of Neocortex parameters, or a callable
+    bits -> cells.
+    """
+    from neoslam_stream.messages import Message
+    from stages.features import FeatureStage
+    from stages.projector import ProjectorStage
+    from stages.spatial_view import SpatialViewStage
+
+    summer, winter, ids = load_frames(step, limit, min_std)
+    fa = FeatureStage(backbone=backbone, seed=seed, threads=1)
+    fa.setup()
+    assert fa.extractor is not None
+    pb = ProjectorStage(input_dim=fa.extractor.output_dim, projection=projection, seed=seed,
+                        centre_window=centre_window)
+    pb.setup()
+    if isinstance(neocortex, str) and neocortex == "passthrough":
+        def cells_of(msg: Message) -> np.ndarray:
+            return passthrough_neocortex(msg["bits"])
+        nc_name = "passthrough (cell 0 of each active column)"
+    elif callable(neocortex):
+        def cells_of(msg: Message) -> np.ndarray:
+            return np.asarray(neocortex(msg["bits"]))
+        nc_name = getattr(neocortex, "__name__", "callable")
+    else:
+        from stages.neocortex import make_stage as make_neocortex
+
+        nc = make_neocortex(**(neocortex if isinstance(neocortex, dict) else {}))
+        nc.setup()
+        nc_name = f"stages.neocortex (tie_break {nc.info()['tie_break']})"
+
+        def cells_of(msg: Message) -> np.ndarray:
+            return nc.process("bin_features", msg)[0][1]["cells"]
     frames = summer + winter
-    sdrs = []
+    n = len(summer)
+    bits: list[np.ndarray] = []
+    sdrs: list[np.ndarray] = []
     for k in range(0, len(frames), 8):
-        for bits in proj.bits_batch(fx.extract_batch(frames[k:k + 8])):
-            sdrs.append(neocortex(bits) if neocortex is not None else passthrough_neocortex(bits))
+        imgs = [Message("image", k + i, (k + i) * 0.1, {"image": f, "encoding": "rgb8"})
+                for i, f in enumerate(frames[k:k + 8])]
+        feats = [m for _, m in fa.process_batch("image", imgs)]
+        for _, m in pb.process_batch("visual_features", feats):
+            bits.append(m["bits"])
+            sdrs.append(cells_of(m))
+    calibrated = calibrate_theta_sigma(bits[:n], ids, tolerance, quantile)
     results = []
     for params in svc_params:
-        svc = SpatialViewCells(**params)
-        out = [svc.compute(c) for c in sdrs]
-        res = evaluate([r["id"] for r in out], [r["is_loop_closure"] for r in out], ids, len(summer), tolerance)
-        res.update({"backbone": fx.backbone, "frames": len(frames), "step": step, "tolerance": tolerance,
-                    "templates": svc.n_templates, "svc": params,
-                    "chance_precision": min(1.0, (2 * tolerance + 1) / (ids[-1] - ids[0] + 10))})
+        params = dict(params)
+        if params.get("theta_sigma") is None:
+            params["theta_sigma"] = calibrated
+        d = SpatialViewStage(**params)
+        out = [d.process("sdr", Message("sdr", i, i * 0.1, {"cells": c.astype(np.uint32), "size": 65536}))[0][1]
+               for i, c in enumerate(sdrs)]
+        template_ids = [int(m["id"]) for m in out]
+        res = evaluate(template_ids, [bool(m["is_loop_closure"]) for m in out], ids, n, tolerance)
+        created: dict[int, int] = {}
+        for i, t in enumerate(template_ids[:n]):
+            created.setdefault(t, ids[i])
+        # winter frame index -> source frame where its matched template was created (-1: in winter)
+        res["closure_origin"] = {j - n: created.get(template_ids[j], -1) for j in range(n, len(out))
+                                 if out[j]["is_loop_closure"]}
+        window = sum(1 for i in ids if abs(i - ids[n // 2]) <= tolerance)
+        res.update({"backbone": fa.info()["backbone"], "backbone_is_random": fa.info()["backbone_is_random"],
+                    "neocortex": nc_name, "projection": projection, "centre_window": centre_window,
+                    "places": n, "frames": len(frames), "step": step, "min_std": min_std,
+                    "tolerance": tolerance, "templates": d.cells.n_templates, "svc": params,
+                    "theta_sigma_calibrated": calibrated, "calibration_quantile": quantile,
+                    "chance_precision": window / n,
+                    "summer_closures": int(sum(bool(m["is_loop_closure"]) for m in out[:n]))})
         results.append(res)
     return results

@@ -6,7 +6,8 @@ Inputs (512 active columns of 2048 each step, generated here, seeded):
   the place's bits resampled, 3 laps (~1800 steps);
 * ``random``: 3000 independent random SDRs (the worst case).
 
-Per kind: steps/s overall and over the last 500 steps, segments and synapses at the end, peak RSS.
+Per kind: steps/s overall and over the last 500 steps, segments and synapses at the end, peak RSS,
+and the share of winners that are cell 0 / the column's most frequent winner (sequence context).
 Reference, htm.core C++ on this kind of machine (median steps/s): repeat 171, route 90, random 83.
 Run: ``.venv/bin/python bench/tm.py [--tie-break random]``.
 """
@@ -64,15 +65,21 @@ def run(kind: str, tie_break: str) -> dict:
     warm.compute(xs[0])
     warm.compute(xs[1])
     times = np.empty(len(xs))
+    per_cell = np.zeros(nc.n_cells, dtype=np.int64)  # how often each cell won
     for i, x in enumerate(xs):
         t = time.perf_counter()
-        nc.compute(x)
+        w = nc.compute(x)
         times[i] = time.perf_counter() - t
+        per_cell[w] += 1
+    per_col = per_cell.reshape(-1, nc.config.cells_per_column)
     return {"steps": len(xs), "steps_per_s": len(xs) / times.sum(),
             "steps_per_s_last500": 500 / times[-500:].sum(),
             "step_ms_p50": float(np.median(times) * 1e3), "step_ms_max": float(times.max() * 1e3),
             "segments": nc.tm.segments, "synapses": nc.tm.synapses,
             "mean_anomaly": nc.anomaly_sum / nc.steps,
+            # context check: a share near 1 means each column always picks the same cell
+            "winners_in_cell0": float(per_col[:, 0].sum() / per_cell.sum()),
+            "winners_in_modal_cell_of_column": float(per_col.max(axis=1).sum() / per_cell.sum()),
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
             "htm_core_median_steps_per_s": HTM_CORE_MEDIAN[kind]}
 

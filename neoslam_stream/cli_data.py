@@ -28,7 +28,13 @@ def cmd_dataset_synthetic(args: argparse.Namespace) -> int:
 
     out = Path(args.out)
     (out / "images").mkdir(parents=True, exist_ok=True)
-    src = SyntheticWorldSource(frames=args.frames, seed=args.seed)
+    params = {k: getattr(args, k) for k in ("frames", "seed", "laps_cw", "laps_ccw", "width", "height")
+              if getattr(args, k) is not None}
+    try:
+        src = SyntheticWorldSource(**params)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     gt, odo = [], []
     import math
 
@@ -62,6 +68,10 @@ def register(sub: argparse._SubParsersAction, bench_sub: argparse._SubParsersAct
     s.add_argument("--out", required=True)
     s.add_argument("--frames", type=int, default=None, help="number of frames (default: the whole route)")
     s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--laps-cw", type=int, default=None, help="laps one way (default 2)")
+    s.add_argument("--laps-ccw", type=int, default=None, help="laps the other way afterwards (default 1)")
+    s.add_argument("--width", type=int, default=None, help="image width (default 416)")
+    s.add_argument("--height", type=int, default=None, help="image height (default 240)")
     s.set_defaults(func=cmd_dataset_synthetic)
     from .cli import add_run_options
 

@@ -78,31 +78,47 @@ def paper_metric(est_xy: np.ndarray, ref_xy: np.ndarray) -> dict[str, float]:
     return {"mean_m": float(err.mean()), "max_m": float(err.max())}
 
 
-def loop_closure_quality(templates_csv: Path, gt: np.ndarray, radius: float) -> dict[str, Any]:
+def loop_closure_quality(templates_csv: str | Path, gt: np.ndarray, radius: float = 1.0,
+                         min_gap_s: float = 30.0) -> dict[str, Any]:
+    """Precision and recall of the loop closures in ``templates.csv`` against ground truth.
+
+    A template's place is the true position at the first frame that produced it. A closure (a frame
+    with ``is_loop_closure``) is correct when its template's place is within ``radius`` metres of the
+    frame's true position. A frame is a revisit when the robot was within ``radius`` of its true
+    position more than ``min_gap_s`` seconds earlier; recall = revisit frames with a correct closure
+    / revisit frames. Frames without a ground-truth sample within 1 s are left out.
+    """
+    from scipy.spatial import cKDTree
+
     rows = np.loadtxt(templates_csv, delimiter=",", skiprows=1, ndmin=2)
     if rows.size == 0:
-        return {"closures": 0, "precision": None, "recall": None}
-    stamps, ids, loops = rows[:, 1], rows[:, 2].astype(int), rows[:, 3].astype(bool)
-    _, gi = associate(stamps, gt[:, 0], max_dt=1.0)
+        return {"closures": 0, "correct": 0, "precision": None, "recall": None, "revisit_frames": 0,
+                "radius_m": radius}
+    ie, gi = associate(rows[:, 1], gt[:, 0], max_dt=1.0)
+    stamps, ids, loops = rows[ie, 1], rows[ie, 2].astype(int), rows[ie, 3].astype(bool)
     pos = gt[gi, 1:3]
-    created: dict[int, np.ndarray] = {}
-    for k, tid in enumerate(ids):
-        created.setdefault(int(tid), pos[k])
-    correct = sum(1 for k in np.flatnonzero(loops) if np.linalg.norm(created[int(ids[k])] - pos[k]) <= radius)
-    # revisits: frames whose true position was visited earlier (more than 30 s before)
-    revisit = 0
-    for k in range(len(stamps)):
-        earlier = stamps < stamps[k] - 30.0
-        if earlier.any() and np.min(np.linalg.norm(pos[earlier] - pos[k], axis=1)) <= radius:
-            revisit += 1
-    n_loops = int(loops.sum())
-    return {"closures": n_loops, "correct": int(correct),
-            "precision": correct / n_loops if n_loops else None,
-            "recall": correct / revisit if revisit else None, "revisit_frames": revisit, "radius_m": radius}
+    _, first = np.unique(ids, return_index=True)
+    place = dict(zip(ids[first].tolist(), pos[first], strict=True))
+    tpl_pos = np.array([place[t] for t in ids.tolist()]).reshape(-1, 2)
+    correct = loops & (np.linalg.norm(tpl_pos - pos, axis=1) <= radius)
+    earliest = np.array([stamps[nb].min() for nb in cKDTree(pos).query_ball_point(pos, radius)])
+    revisit = earliest < stamps - min_gap_s
+    n_loops, n_rev = int(loops.sum()), int(revisit.sum())
+    return {"closures": n_loops, "correct": int(correct.sum()),
+            "precision": float(correct.sum() / n_loops) if n_loops else None,
+            "recall": float((correct & revisit).sum() / n_rev) if n_rev else None,
+            "revisit_frames": n_rev, "radius_m": radius, "min_gap_s": min_gap_s}
 
 
 def evaluate_run(run_dir: str | Path, gt_path: str | Path | None = None, radius: float = 1.0,
-                 plot: bool = True) -> dict[str, Any]:
+                 plot: bool = True, walls: np.ndarray | None = None) -> dict[str, Any]:
+    """Evaluate a run folder against ground truth; write ``evaluation.json`` (and ``map.png``).
+
+    ``gt_path`` defaults to ``RUN_DIR/groundtruth.tum``; ``radius`` is the loop-closure correctness
+    radius (m); ``walls`` (n, 2, 2) segments drawn under the plot in ground-truth coordinates, by
+    default the synthetic world's when ``report.json`` says the run's source was ``synthetic``.
+    Returns the dict written to ``evaluation.json`` (keys in docs/evaluation.md).
+    """
     run_dir = Path(run_dir)
     gt_file = Path(gt_path) if gt_path else run_dir / "groundtruth.tum"
     if not gt_file.exists():
@@ -129,11 +145,29 @@ def evaluate_run(run_dir: str | Path, gt_path: str | Path | None = None, radius:
         result["loop_closures"] = loop_closure_quality(run_dir / "templates.csv", gt, radius)
     (run_dir / "evaluation.json").write_text(json.dumps(result, indent=2))
     if plot:
-        plot_map(run_dir, gt, traj, mp, result)
+        if walls is None and gt_path is None:
+            walls = _synthetic_walls(run_dir)
+        plot_map(run_dir, gt, traj, mp, result, walls)
     return result
 
 
-def plot_map(run_dir: Path, gt: np.ndarray, traj: np.ndarray, mp: dict, result: dict) -> None:
+def _synthetic_walls(run_dir: Path) -> np.ndarray | None:
+    try:
+        kind = json.loads((run_dir / "report.json").read_text()).get("source", {}).get("kind")
+    except (OSError, ValueError, AttributeError):
+        return None
+    if kind != "synthetic":
+        return None
+    from .sources.synthetic import WALLS
+
+    return WALLS[:, :4].reshape(-1, 2, 2)
+
+
+def plot_map(run_dir: Path, gt: np.ndarray, traj: np.ndarray, mp: dict, result: dict,
+             walls: np.ndarray | None = None) -> None:
+    """``map.png``: ground truth (black), odometry (red) and the experience map (blue nodes and
+    links), each aligned onto the ground truth by SE(2) Umeyama, loop closures as green discs at
+    their true positions, and the world's walls (grey) when known."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -142,6 +176,10 @@ def plot_map(run_dir: Path, gt: np.ndarray, traj: np.ndarray, mp: dict, result: 
     ie, ig = associate(traj[:, 0], gt[:, 0])
     R, t = umeyama_se2(traj[ie, 1:3], gt[ig, 1:3])
     fig, ax = plt.subplots(figsize=(7, 6))
+    if walls is not None:
+        from matplotlib.collections import LineCollection
+
+        ax.add_collection(LineCollection(np.asarray(walls), colors="0.6", linewidths=2.0, zorder=0))
     tpl = run_dir / "templates.csv"
     if tpl.exists():  # first, so that the paths stay visible on top of them
         rows = np.loadtxt(tpl, delimiter=",", skiprows=1, ndmin=2)

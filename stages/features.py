@@ -327,14 +327,16 @@ class FeatureStage(StageAdapter):
 
     def process_batch(self, topic: str, msgs: Sequence[Message]) -> Output:
         assert self.extractor is not None
-        keep, rgbs = [], []
+        keep, rgbs, strided = [], [], 0
         for m in msgs:
             if not self.extractor.keep(m.frame):
-                self.counters["strided"] += 1
+                strided += 1
                 continue
             rgbs.append(decode_rgb(m))
             keep.append(m)
         feats = self.extractor.extract_batch(rgbs)
+        # counted only once the batch succeeded: the worker retries a failed batch frame by frame
+        self.counters["strided"] += strided
         return [("visual_features", m.derive("visual_features", {"features": f, "backbone": self.extractor.backbone}))
                 for m, f in zip(keep, feats, strict=True)]
 

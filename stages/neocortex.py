@@ -5,9 +5,12 @@ of a Temporal Memory with 2048 columns x 32 cells, learning always on and never 
 is the set of winner cells (~512 indices of 65536) plus the raw anomaly for the monitor.
 
 With htm.core's lowest-index tie rule (``tie_break: lowest``, the default, what the ROS 2 NeoSLAM
-runs) nearly every winner is cell 0 of its column, so the SDR is in effect the input re-indexed;
-``tie_break: random`` (NuPIC's rule, what the original NeoSLAM ran) spreads winners over the cells
-of a column and so encodes sequence context. See docs/temporal_memory.md.
+runs) nearly every winner is cell 0 of its column, so the SDR is in effect the input re-indexed.
+``tie_break: random`` (NuPIC's rule, what the original NeoSLAM ran) puts a column's first segment
+on a random cell, but with minThreshold 1 that segment goes on matching (one active presynaptic
+cell of its ~20 is enough), so the column keeps that cell: >= 99 % of winners are the column's
+usual cell in our benches, the input re-indexed by a fixed per-column permutation, and still no
+sequence context. See docs/temporal_memory.md.
 """
 
 from __future__ import annotations
@@ -45,7 +48,11 @@ class NeocortexConfig(BaseModel):
 
 
 class Neocortex:
-    """bits (active columns) -> winner cells; ``compute(bits)``."""
+    """Stage C: sLSBH bits (the active columns) -> winner cells of the Temporal Memory.
+
+    ``Neocortex(**NeocortexConfig fields)``; ``compute(bits)`` runs one learning step (no reset,
+    ever) and returns the winner cells; ``anomaly`` is the raw anomaly of that step.
+    """
 
     def __init__(self, **params: Any) -> None:
         self.config = NeocortexConfig(**params)
@@ -66,7 +73,8 @@ class Neocortex:
         return self.tm.n_cells
 
     def compute(self, bits: np.ndarray) -> np.ndarray:
-        """One frame: the sLSBH on-bits are the active columns; returns sorted uint32 winner cells."""
+        """One frame: the sLSBH on-bits (integer indices < ``columns``) are the active columns;
+        returns the sorted uint32 winner cells (cell = column * cells_per_column + i)."""
         winners = self.tm.compute(bits, learn=True)
         self.steps += 1
         self.anomaly_sum += self.tm.anomaly

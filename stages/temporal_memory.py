@@ -19,21 +19,26 @@ One step, ``compute(active_columns, learn)``:
      winner with ``min(maxNewSynapseCount, |prev winners|)`` synapses;
    * inactive column with matching segments: those segments are punished by
      ``predictedSegmentDecrement`` on their active synapses.
-   Synapses whose permanence would fall below 1e-6 are destroyed; a segment left with fewer than
-   ``minThreshold`` synapses is destroyed. Growth first removes the lowest-permanence synapses not
-   onto candidates when the segment would exceed ``maxSynapsesPerSegment``, shuffles the candidates
-   when fewer are wanted than exist, and skips candidates already present (raising their
-   permanence to ``initialPermanence``). A cell at ``maxSegmentsPerCell`` loses the segment with
-   the smallest sum of squared permanences (ties: lower id). Destroyed ids are reused last-freed
-   first.
+   Synapses whose permanence would fall below 1e-6 are destroyed after the pass, in slot order;
+   a segment left with fewer than ``minThreshold`` synapses is destroyed (its synapses from the
+   last slot backwards). Growth first removes the lowest-permanence synapses not onto candidates
+   when the segment would exceed ``maxSynapsesPerSegment`` (ties: lower synapse id), shuffles the
+   candidates when fewer are wanted than exist, and skips candidates already present (raising
+   their permanence to ``initialPermanence``). A cell at ``maxSegmentsPerCell`` loses the segment
+   with the smallest float32 sum of squared permanences (ties: lower id). A destroyed synapse's
+   slot is filled by the segment's last synapse. Destroyed segment and synapse ids are reused
+   last-freed first. Together these keep every segment's synapses, their ids and slot order equal
+   to htm.core's, so the run is bit-exact (checked against htm.core's C++ on the shared trace and
+   on small runs that evict, destroy and hit the synapse cap constantly: tests/test_tm_parity.py).
 
 Random numbers come from our own MT19937 (the same stream as ``std::mt19937(seed)``), drawn as
 ``raw % n`` exactly where htm.core draws them: the 32-cell shuffle of the least-used-cell choice and
 the candidate shuffle in growth.
 
 Data layout: struct-of-arrays. Segments are rows of fixed-capacity synapse tables
-(presynaptic cell int32, permanence float32, ``maxSynapsesPerSegment`` slots), with per-cell segment
-lists, a LIFO free list, and counts in preallocated arrays; memory grows with segments only. The hot
+(presynaptic cell int32, permanence float32, synapse id int32, ``maxSynapsesPerSegment`` slots),
+with per-cell segment lists, LIFO free lists of segment and synapse ids, and counts in
+preallocated arrays; memory grows with segments only (never with steps). The hot
 loops are numba-compiled. Instead of htm.core's presynaptic index, dendrite activity is one
 sequential pass over the synapse table against a dense activity mask: with NeoSLAM's numbers
 (~2k segments, ~170k synapses, ~16k active cells while bursting) this is faster than walking an
@@ -41,7 +46,11 @@ index and needs no bookkeeping when permanences cross the connected threshold.
 
 Differences from htm.core's Python API: inputs and outputs are sorted numpy index arrays, not
 ``SDR`` objects (``getActiveCells()`` returns the ``.sparse`` equivalent); no external predictive
-inputs; anomaly mode RAW only.
+inputs; anomaly mode RAW only. One behavioural difference, unreachable with a positive
+``permanenceIncrement`` and ``initialPermanence``: htm.core still grows synapses on a segment that
+its own adaptation has just destroyed (leaving synapses on a freed segment); we skip that growth.
+A matching segment keeps its >= minThreshold active synapses (they are incremented), so it is never
+destroyed by its own adaptation in practice.
 """
 
 from __future__ import annotations
@@ -119,10 +128,37 @@ def _shuffle(arr, mt, idx):  # pragma: no cover - compiled
         arr[j] = t
 
 
-# --------------------------------------------------------------------------- segments
+# --------------------------------------------------------------------------- segments and synapses
+#
+# Synapses carry a global id (``sid``) drawn like htm.core's: the last freed id first, else a new
+# one. The ids break ties when the synapse cap removes the weakest synapses, and the order in which
+# synapses are destroyed (hence the free list, hence later ids and slot orders) follows htm.core's
+# rules, so segments hold the same synapses in the same slot order as htm.core's.
+# ``sst`` = [synapse id high-water mark, free synapse ids].
 
 @njit(cache=True)
-def _destroy_segment(s, seg_cell, seg_nsyn, seg_alive, cell_segs, cell_nseg, free, nfree):  # pragma: no cover
+def _free_synapse_at(s, k, pre, perm, sid, seg_nsyn, syn_free, sst):  # pragma: no cover
+    """Destroy the synapse in slot ``k`` of segment ``s``: the last slot moves into its place."""
+    syn_free[sst[1]] = sid[s, k]
+    sst[1] += 1
+    last = seg_nsyn[s] - 1
+    pre[s, k] = pre[s, last]
+    perm[s, k] = perm[s, last]
+    sid[s, k] = sid[s, last]
+    seg_nsyn[s] = last
+
+
+@njit(cache=True)
+def _free_synapse_id(s, syn_id, pre, perm, sid, seg_nsyn, syn_free, sst):  # pragma: no cover
+    for k in range(seg_nsyn[s]):
+        if sid[s, k] == syn_id:
+            _free_synapse_at(s, k, pre, perm, sid, seg_nsyn, syn_free, sst)
+            return
+
+
+@njit(cache=True)
+def _destroy_segment(s, seg_cell, seg_nsyn, seg_alive, cell_segs, cell_nseg, free, nfree,
+                     pre, perm, sid, syn_free, sst):  # pragma: no cover
     c = seg_cell[s]
     n = cell_nseg[c]
     for i in range(n):
@@ -131,64 +167,79 @@ def _destroy_segment(s, seg_cell, seg_nsyn, seg_alive, cell_segs, cell_nseg, fre
                 cell_segs[c, j] = cell_segs[c, j + 1]
             cell_nseg[c] = n - 1
             break
+    while seg_nsyn[s] > 0:  # synapses go from the last slot backwards
+        _free_synapse_at(s, seg_nsyn[s] - 1, pre, perm, sid, seg_nsyn, syn_free, sst)
     seg_alive[s] = False
-    seg_nsyn[s] = 0
     free[nfree[0]] = s
     nfree[0] += 1
 
 
 @njit(cache=True)
-def _adapt(s, pre, perm, seg_nsyn, active_mask, inc, dec, min_threshold,
-           seg_cell, seg_alive, cell_segs, cell_nseg, free, nfree):  # pragma: no cover
-    """adaptSegment; returns True when the segment was destroyed."""
-    i = 0
-    while i < seg_nsyn[s]:
+def _adapt(s, active_mask, inc, dec, min_threshold, pre, perm, sid, seg_nsyn, seg_cell, seg_alive,
+           cell_segs, cell_nseg, free, nfree, syn_free, sst, doomed):  # pragma: no cover
+    """adaptSegment: +inc on active, -dec on inactive synapses (clamped to 1); a synapse that would
+    fall below epsilon is destroyed after the pass, in slot order; a segment left with fewer than
+    minThreshold synapses is destroyed. Returns True when the segment was destroyed.
+    ``doomed`` is scratch space of maxSynapsesPerSegment ids (no allocation per call)."""
+    n = seg_nsyn[s]
+    nd = 0
+    for i in range(n):
         if active_mask[pre[s, i]]:
             p = perm[s, i] + inc
         else:
             p = perm[s, i] - dec
         if p < EPS:
-            last = seg_nsyn[s] - 1
-            pre[s, i] = pre[s, last]
-            perm[s, i] = perm[s, last]
-            seg_nsyn[s] = last
+            doomed[nd] = sid[s, i]
+            nd += 1
             continue
         if p > np.float32(1.0):
             p = np.float32(1.0)
         perm[s, i] = p
-        i += 1
+    for j in range(nd):
+        _free_synapse_id(s, doomed[j], pre, perm, sid, seg_nsyn, syn_free, sst)
     if seg_nsyn[s] < min_threshold:
-        _destroy_segment(s, seg_cell, seg_nsyn, seg_alive, cell_segs, cell_nseg, free, nfree)
+        _destroy_segment(s, seg_cell, seg_nsyn, seg_alive, cell_segs, cell_nseg, free, nfree,
+                         pre, perm, sid, syn_free, sst)
         return True
     return False
 
 
 @njit(cache=True)
-def _grow(s, cands, cand_mask, max_new, max_syn, init_perm, pre, perm, seg_nsyn, mt, idx):  # pragma: no cover
+def _grow(s, cands, cand_mask, max_new, max_syn, init_perm, pre, perm, sid, seg_nsyn, syn_free, sst,
+          mt, idx):  # pragma: no cover
+    """growSynapses towards ``cands`` (the previous winners, sorted)."""
     n_actual = min(max_new, cands.shape[0])
     overrun = seg_nsyn[s] + n_actual - max_syn
     if overrun > 0:
-        for _ in range(overrun):  # lowest permanence not onto a candidate; ties: lower slot
-            best = -1
-            for i in range(seg_nsyn[s]):
-                if cand_mask[pre[s, i]]:
-                    continue
-                if best == -1 or perm[s, i] < perm[s, best]:
-                    best = i
-            if best == -1:
-                break
-            last = seg_nsyn[s] - 1
-            pre[s, best] = pre[s, last]
-            perm[s, best] = perm[s, last]
-            seg_nsyn[s] = last
+        # make room: the weakest synapses not onto a candidate, ties by lower synapse id
+        n = seg_nsyn[s]
+        keys = np.empty(n, dtype=np.float64)
+        ids = np.empty(n, dtype=np.int32)
+        m = 0
+        for i in range(n):
+            if not cand_mask[pre[s, i]]:
+                keys[m] = perm[s, i]
+                ids[m] = sid[s, i]
+                m += 1
+        order = np.arange(m)
+        for a in range(1, m):  # insertion sort by (permanence, id); m <= maxSynapsesPerSegment
+            b = a
+            while b > 0 and (keys[order[b]] < keys[order[b - 1]]
+                             or (keys[order[b]] == keys[order[b - 1]] and ids[order[b]] < ids[order[b - 1]])):
+                t = order[b]
+                order[b] = order[b - 1]
+                order[b - 1] = t
+                b -= 1
+        for j in range(min(overrun, m)):
+            _free_synapse_id(s, ids[order[j]], pre, perm, sid, seg_nsyn, syn_free, sst)
     n_actual = min(n_actual, max_syn - seg_nsyn[s])
     if n_actual <= 0:
         return
-    order = cands.copy()
+    picks = cands.copy()
     if max_new < cands.shape[0]:
-        _shuffle(order, mt, idx)
+        _shuffle(picks, mt, idx)
     target = seg_nsyn[s] + n_actual
-    for c in order:
+    for c in picks:
         if seg_nsyn[s] >= target:
             break
         found = -1
@@ -196,20 +247,27 @@ def _grow(s, cands, cand_mask, max_new, max_syn, init_perm, pre, perm, seg_nsyn,
             if pre[s, i] == c:
                 found = i
                 break
-        if found >= 0:
+        if found >= 0:  # no duplicate synapse; the existing one is raised to initialPermanence
             if perm[s, found] < init_perm:
                 perm[s, found] = init_perm
             continue
         k = seg_nsyn[s]
         pre[s, k] = c
         perm[s, k] = init_perm
+        if sst[1] > 0:
+            sst[1] -= 1
+            sid[s, k] = syn_free[sst[1]]
+        else:
+            sid[s, k] = sst[0]
+            sst[0] += 1
         seg_nsyn[s] = k + 1
 
 
 @njit(cache=True)
 def _create_segment(cell, max_seg, seg_cell, seg_nsyn, seg_alive, cell_segs, cell_nseg, free, nfree,
-                    perm, hw):  # pragma: no cover
+                    hw, pre, perm, sid, syn_free, sst):  # pragma: no cover
     while cell_nseg[cell] >= max_seg:
+        # evict the least useful segment: smallest float32 sum of squared permanences, ties by lower id
         victim = -1
         best = np.float32(0.0)
         for i in range(cell_nseg[cell]):
@@ -220,7 +278,8 @@ def _create_segment(cell, max_seg, seg_cell, seg_nsyn, seg_alive, cell_segs, cel
             if victim == -1 or acc < best or (acc == best and s < victim):
                 victim = s
                 best = acc
-        _destroy_segment(victim, seg_cell, seg_nsyn, seg_alive, cell_segs, cell_nseg, free, nfree)
+        _destroy_segment(victim, seg_cell, seg_nsyn, seg_alive, cell_segs, cell_nseg, free, nfree,
+                         pre, perm, sid, syn_free, sst)
     if nfree[0] > 0:
         nfree[0] -= 1
         s = free[nfree[0]]
@@ -275,7 +334,7 @@ def _activate_dendrites(active_mask, pre, perm, seg_nsyn, seg_alive, seg_cell, h
 def _activate_cells(active_cols, n_cols, K, act, match, pot, prev_active_mask, prev_winners,
                     prev_winner_mask, learn, inc, dec, psd, act_thr, min_thr, max_new, max_syn,
                     init_perm, max_seg, tie_random, pre, perm, seg_cell, seg_nsyn, seg_alive, cell_segs,
-                    cell_nseg, free, nfree, hw, mt, idx):  # pragma: no cover
+                    cell_nseg, free, nfree, hw, sid, syn_free, sst, mt, idx):  # pragma: no cover
     col_active = np.zeros(n_cols, dtype=np.bool_)
     for c in active_cols:
         col_active[c] = True
@@ -288,6 +347,7 @@ def _activate_cells(active_cols, n_cols, K, act, match, pot, prev_active_mask, p
     n_act = act.shape[0]
     n_match = match.shape[0]
     order = np.arange(K, dtype=np.int64)
+    doomed = np.empty(max_syn, dtype=np.int32)
     for col in range(n_cols):
         a0 = ia
         while ia < n_act and seg_cell[act[ia]] // K == col:
@@ -309,11 +369,12 @@ def _activate_cells(active_cols, n_cols, K, act, match, pot, prev_active_mask, p
                         last_cell = cell
                     if learn:
                         n_grow = max_new - pot[s]
-                        gone = _adapt(s, pre, perm, seg_nsyn, prev_active_mask, inc, dec, min_thr,
-                                      seg_cell, seg_alive, cell_segs, cell_nseg, free, nfree)
+                        gone = _adapt(s, prev_active_mask, inc, dec, min_thr, pre, perm, sid, seg_nsyn,
+                                      seg_cell, seg_alive, cell_segs, cell_nseg, free, nfree, syn_free, sst,
+                                      doomed)
                         if n_grow > 0 and not gone:
                             _grow(s, prev_winners, prev_winner_mask, n_grow, max_syn, init_perm, pre, perm,
-                                  seg_nsyn, mt, idx)
+                                  sid, seg_nsyn, syn_free, sst, mt, idx)
             else:  # burst
                 for k in range(K):
                     out_active[na] = col * K + k
@@ -359,24 +420,25 @@ def _activate_cells(active_cols, n_cols, K, act, match, pot, prev_active_mask, p
                 if learn:
                     if best >= 0:
                         n_grow = max_new - pot[best]
-                        gone = _adapt(best, pre, perm, seg_nsyn, prev_active_mask, inc, dec, min_thr,
-                                      seg_cell, seg_alive, cell_segs, cell_nseg, free, nfree)
+                        gone = _adapt(best, prev_active_mask, inc, dec, min_thr, pre, perm, sid, seg_nsyn,
+                                      seg_cell, seg_alive, cell_segs, cell_nseg, free, nfree, syn_free, sst,
+                                      doomed)
                         if n_grow > 0 and not gone:
                             _grow(best, prev_winners, prev_winner_mask, n_grow, max_syn, init_perm, pre, perm,
-                                  seg_nsyn, mt, idx)
+                                  sid, seg_nsyn, syn_free, sst, mt, idx)
                     else:
                         n_new = min(max_new, prev_winners.shape[0])
                         if n_new > 0:
                             s = _create_segment(winner, max_seg, seg_cell, seg_nsyn, seg_alive, cell_segs,
-                                                cell_nseg, free, nfree, perm, hw)
+                                                cell_nseg, free, nfree, hw, pre, perm, sid, syn_free, sst)
                             _grow(s, prev_winners, prev_winner_mask, n_new, max_syn, init_perm, pre, perm,
-                                  seg_nsyn, mt, idx)
+                                  sid, seg_nsyn, syn_free, sst, mt, idx)
         elif learn and psd > 0:
             for j in range(m0, im):
                 s = match[j]
                 if seg_alive[s]:
-                    _adapt(s, pre, perm, seg_nsyn, prev_active_mask, -psd, np.float32(0.0), min_thr,
-                           seg_cell, seg_alive, cell_segs, cell_nseg, free, nfree)
+                    _adapt(s, prev_active_mask, -psd, np.float32(0.0), min_thr, pre, perm, sid, seg_nsyn,
+                           seg_cell, seg_alive, cell_segs, cell_nseg, free, nfree, syn_free, sst, doomed)
     return out_active[:na], out_winner[:nw]
 
 
@@ -425,6 +487,10 @@ class TemporalMemory:
         S = self.config.maxSynapsesPerSegment
         self._pre = np.zeros((cap, S), dtype=np.int32)
         self._perm = np.zeros((cap, S), dtype=np.float32)
+        self._sid = np.zeros((cap, S), dtype=np.int32)  # global synapse ids (htm.core's Synapse)
+        # free synapse ids never outnumber the slots: the id high-water mark is the peak synapse count
+        self._syn_free = np.zeros(cap * S, dtype=np.int32)
+        self._sst = np.zeros(2, dtype=np.int64)  # [synapse id high-water mark, free synapse ids]
         self._seg_cell = np.zeros(cap, dtype=np.int32)
         self._seg_nsyn = np.zeros(cap, dtype=np.int32)
         self._seg_alive = np.zeros(cap, dtype=np.bool_)
@@ -445,7 +511,10 @@ class TemporalMemory:
             b[:cap] = a
             return b
 
-        self._pre, self._perm = grow(self._pre), grow(self._perm)
+        self._pre, self._perm, self._sid = grow(self._pre), grow(self._perm), grow(self._sid)
+        syn_free = np.zeros(new * self.config.maxSynapsesPerSegment, dtype=np.int32)
+        syn_free[: self._syn_free.size] = self._syn_free
+        self._syn_free = syn_free
         self._seg_cell, self._seg_nsyn = grow(self._seg_cell), grow(self._seg_nsyn)
         self._seg_alive, self._free = grow(self._seg_alive, False), grow(self._free)
 
@@ -476,6 +545,9 @@ class TemporalMemory:
         cols = np.asarray(active_columns)
         if cols.ndim != 1:
             raise ValueError(f"active_columns must be a 1-D index array, got shape {cols.shape}")
+        if cols.size and not np.issubdtype(cols.dtype, np.integer):
+            # a float array (NaN included) is not an index list: casting would invent columns
+            raise ValueError(f"active_columns must hold integer indices, got dtype {cols.dtype}")
         cols = np.unique(cols.astype(np.int64))
         if cols.size and (cols[0] < 0 or cols[-1] >= self.n_cols):
             raise ValueError(f"column indices must lie in [0, {self.n_cols})")
@@ -497,7 +569,7 @@ class TemporalMemory:
             cfg.minThreshold, cfg.maxNewSynapseCount, cfg.maxSynapsesPerSegment, f["initialPermanence"],
             cfg.maxSegmentsPerCell, cfg.tie_break == "random", self._pre, self._perm, self._seg_cell,
             self._seg_nsyn, self._seg_alive, self._cell_segs, self._cell_nseg, self._free, self._nfree,
-            self._hw, self._mt, self._mt_idx)
+            self._hw, self._sid, self._syn_free, self._sst, self._mt, self._mt_idx)
         self._dendrites_valid = False
         return self.winner_cells
 
@@ -556,7 +628,7 @@ class TemporalMemory:
         self._ensure_capacity(1)
         return int(_create_segment(cell, self.config.maxSegmentsPerCell, self._seg_cell, self._seg_nsyn,
                                    self._seg_alive, self._cell_segs, self._cell_nseg, self._free, self._nfree,
-                                   self._perm, self._hw))
+                                   self._hw, self._pre, self._perm, self._sid, self._syn_free, self._sst))
 
     def add_synapse(self, seg: int, presynaptic_cell: int, permanence: float) -> None:
         """Test/inspection helper: append one synapse to a segment."""
@@ -565,6 +637,12 @@ class TemporalMemory:
             raise ValueError("segment is full")
         self._pre[seg, n] = presynaptic_cell
         self._perm[seg, n] = np.float32(permanence)
+        if self._sst[1] > 0:  # the id htm.core's createSynapse would give it
+            self._sst[1] -= 1
+            self._sid[seg, n] = self._syn_free[self._sst[1]]
+        else:
+            self._sid[seg, n] = self._sst[0]
+            self._sst[0] += 1
         self._seg_nsyn[seg] = n + 1
         self._dendrites_valid = False
 
@@ -572,7 +650,9 @@ class TemporalMemory:
     def state_dict(self) -> dict[str, Any]:
         n = int(self._hw[0])
         return {"config": self.config.model_dump(mode="json"), "hw": n,
-                "pre": self._pre[:n].copy(), "perm": self._perm[:n].copy(), "seg_cell": self._seg_cell[:n].copy(),
+                "pre": self._pre[:n].copy(), "perm": self._perm[:n].copy(), "sid": self._sid[:n].copy(),
+                "syn_free": self._syn_free[: int(self._sst[1])].copy(), "syn_hw": int(self._sst[0]),
+                "seg_cell": self._seg_cell[:n].copy(),
                 "seg_nsyn": self._seg_nsyn[:n].copy(), "seg_alive": self._seg_alive[:n].copy(),
                 "free": self._free[: int(self._nfree[0])].copy(), "cell_segs": self._cell_segs.copy(),
                 "cell_nseg": self._cell_nseg.copy(), "mt": self._mt.copy(), "mt_idx": int(self._mt_idx[0]),
@@ -580,9 +660,17 @@ class TemporalMemory:
                 "anomaly": float(self.anomaly)}
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
+        """Restore a :meth:`state_dict` taken from a TM with the same configuration."""
+        saved = TemporalMemoryConfig(**st["config"])
+        if saved != self.config:
+            diff = {k: (v, getattr(self.config, k)) for k, v in saved if v != getattr(self.config, k)}
+            raise ValueError(f"state was saved with another configuration (saved, ours): {diff}")
         n = int(st["hw"])
         self._alloc(max(1024, n))
-        self._pre[:n], self._perm[:n] = st["pre"], st["perm"]
+        self._pre[:n], self._perm[:n], self._sid[:n] = st["pre"], st["perm"], st["sid"]
+        syn_free = np.asarray(st["syn_free"], dtype=np.int32)
+        self._syn_free[: syn_free.size] = syn_free
+        self._sst[:] = (int(st["syn_hw"]), syn_free.size)
         self._seg_cell[:n], self._seg_nsyn[:n], self._seg_alive[:n] = st["seg_cell"], st["seg_nsyn"], st["seg_alive"]
         free = np.asarray(st["free"], dtype=np.int32)
         self._free[: free.size] = free

@@ -1,15 +1,18 @@
 """Evaluation: hand-made trajectory pairs with known answers, and real ground truth moved rigidly."""
 
+import json
 import math
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from neoslam_stream.cli import main
 from neoslam_stream.evaluation import (
     ape,
     associate,
     evaluate_run,
+    loop_closure_quality,
     paper_metric,
     read_tum,
     umeyama_se2,
@@ -38,14 +41,83 @@ def test_ape_removes_rotation_and_translation_exactly():
 
 
 def test_ape_of_a_known_residual():
-    ref = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]])
-    est = ref.copy()
-    est[:, 0] *= 1.0  # identical except one point displaced symmetrically twice
-    est[0] += [0.1, 0.0]
-    est[3] -= [0.1, 0.0]
-    res = ape(est, ref)
-    # best alignment keeps the centroid; the rotation that fits best leaves a residual below 0.1
-    assert 0 < res["max_m"] <= 0.1 + 1e-12
+    # a square and the same square 10 % larger about its centre: by symmetry the best rigid fit is
+    # the identity, leaving every corner 0.1 * sqrt(2) m off
+    ref = np.array([[1.0, 1.0], [-1.0, 1.0], [-1.0, -1.0], [1.0, -1.0]])
+    res = ape(ref * 1.1 + [4.0, 2.0], ref)
+    for k in ("mean_m", "rmse_m", "max_m"):
+        assert res[k] == pytest.approx(0.1 * math.sqrt(2), abs=1e-12)
+
+
+def test_loop_closure_precision_and_recall_hand_made(tmp_path):
+    # 1 Hz along x = t mod 50: from t = 50 on, every frame revisits the place of 50 s before
+    t = np.arange(100.0)
+    gt = np.column_stack([t, t % 50, np.zeros(100), np.zeros(100)])
+    rows = []
+    for k in range(100):
+        tid, loop = (k, 0) if k < 50 else (100 + k, 0)
+        if k == 60:
+            tid, loop = 10, 1  # template made at x = 10, robot at x = 10: correct
+        if k == 70:
+            tid, loop = 40, 1  # made at x = 40, robot at x = 20: false
+        if k == 80:
+            tid, loop = 30, 1  # made at x = 30, robot at x = 30: correct
+        rows.append(f"{k},{t[k]:.6f},{tid},{loop},-1,0")
+    rows.append("100,500.0,7,1,-1,0")  # no ground truth near t = 500 s: left out
+    (tmp_path / "templates.csv").write_text("frame,stamp,template_id,is_loop_closure,best_interval,best_score\n"
+                                            + "\n".join(rows) + "\n")
+    q = loop_closure_quality(tmp_path / "templates.csv", gt, radius=1.0)
+    assert (q["closures"], q["correct"], q["revisit_frames"]) == (3, 2, 50)
+    assert q["precision"] == pytest.approx(2 / 3) and q["recall"] == pytest.approx(2 / 50)
+    # a radius of 25 m accepts the false one too; with a 60 s gap nothing counts as a revisit
+    assert loop_closure_quality(tmp_path / "templates.csv", gt, radius=25.0)["correct"] == 3
+    assert loop_closure_quality(tmp_path / "templates.csv", gt, min_gap_s=60.0)["recall"] is None
+
+
+def test_evaluate_run_folder_and_cli(tmp_path, capsys):
+    t = np.arange(20) * 0.5
+    gt = np.column_stack([t, t, np.zeros(20), np.zeros(20)])  # 1 m/s along x
+    write_tum(tmp_path / "groundtruth.tum", gt)
+    est = gt.copy()
+    est[:, 1:3] += [3.0, -1.0]  # the estimate in its own frame: a pure shift
+    write_tum(tmp_path / "trajectory.tum", est)
+    odo = gt.copy()
+    odo[:, 2] = 0.1 * np.arange(20)  # odometry drifting sideways 0.1 m per sample
+    write_tum(tmp_path / "odometry.tum", odo)
+    nodes = [{"id": i, "x": 3.0 + i, "y": -1.0, "theta": 0.0, "stamp": float(i)} for i in range(5)]
+    nodes[4]["y"] = 0.0  # the last node 1 m off
+    (tmp_path / "map.json").write_text(json.dumps({"nodes": nodes,
+                                                   "links": [{"from": i, "to": i + 1} for i in range(4)]}))
+    res = evaluate_run(tmp_path)
+    assert res["trajectory_ape"]["max_m"] < 1e-6 and res["trajectory_paper"]["max_m"] < 1e-6
+    assert res["map_nodes"] == 5
+    assert res["map_paper"]["mean_m"] == pytest.approx(1 / 5, abs=1e-6)
+    assert res["map_paper"]["max_m"] == pytest.approx(1.0, abs=1e-6)
+    assert res["odometry_paper"]["max_m"] == pytest.approx(1.9, abs=1e-6)
+    assert json.loads((tmp_path / "evaluation.json").read_text()) == res
+    # the command recomputes the same from the files; without ground truth it says so
+    (tmp_path / "evaluation.json").unlink()
+    assert main(["evaluate", str(tmp_path)]) == 0
+    assert json.loads((tmp_path / "evaluation.json").read_text()) == res
+    (tmp_path / "groundtruth.tum").rename(tmp_path / "gt_elsewhere.tum")
+    assert main(["evaluate", str(tmp_path)]) == 2
+    assert "no ground truth" in capsys.readouterr().err
+    assert main(["evaluate", str(tmp_path), "--gt", str(tmp_path / "gt_elsewhere.tum")]) == 0
+
+
+@pytest.mark.skipif(not (GT / "KITTI_00_gt.txt").exists(), reason="trajectories_gt absent")
+def test_kitti_ground_truth_shifted_gives_the_shift_before_and_zero_after_alignment():
+    poses = np.loadtxt(GT / "KITTI_00_gt.txt").reshape(-1, 3, 4)
+    xy = poses[:, [0, 2], 3]  # camera frame: x right, z forward -> the ground plane
+    assert np.ptp(xy[:, 0]) > 400  # a city-block drive, not a toy
+    moved = xy + [30.0, -40.0]
+    raw = np.linalg.norm(moved - xy, axis=1)
+    np.testing.assert_allclose(raw, 50.0)  # the known offset before alignment
+    assert ape(moved, xy)["max_m"] < 1e-6
+    assert paper_metric(moved, xy)["max_m"] < 1e-9  # the first point's subtraction removes a shift
+    th = -1.2
+    R = np.array([[math.cos(th), -math.sin(th)], [math.sin(th), math.cos(th)]])
+    assert ape(xy @ R.T + [5.0, 5.0], xy)["max_m"] < 1e-6
 
 
 def test_association_by_nearest_stamp():

@@ -2,6 +2,7 @@
 
 import math
 
+import numpy as np
 import pytest
 
 from stages.ratslam.experience_map import ExperienceMap
@@ -59,7 +60,98 @@ def test_duplicate_links_not_created():
     assert len(em.links) == 1
 
 
-def test_unknown_experience_rejected():
+def test_unknown_experience_in_a_link_rejected():
     em = ExperienceMap()
+    em.on_action(CREATE_NODE, 0, 0, 0.0)
     with pytest.raises(ValueError):
-        em.on_action(CREATE_EDGE, 0, 7, 0.0)
+        em.create_link(0, 7, 0.0)
+    with pytest.raises(ValueError):
+        em.on_action(9, 0, 0, 0.0)  # not an action
+
+
+def test_lost_and_repeated_actions_are_repaired():
+    """After a lost CREATE_NODE the next actions name an experience the map never saw."""
+    em = ExperienceMap(exp_initial_em_deg=0, exp_loops=0)
+    em.on_action(CREATE_NODE, 0, 0, 0.0)
+    em.on_odo(1.0, 0.0, 1.0)
+    # CREATE_NODE 0 -> 1 was lost; 1 -> 2 arrives after another metre
+    em.on_odo(1.0, 0.0, 1.0)
+    em.on_action(CREATE_NODE, 1, 2, 0.0)
+    assert em.n_experiences == 2 and em.current == 2
+    assert (em.x[1], em.y[1]) == pytest.approx((2.0, 0.0))  # where dead reckoning put it
+    em.on_odo(1.0, 0.0, 1.0)
+    em.on_action(CREATE_EDGE, 2, 5, 0.0)  # an edge to an id never created: created here
+    assert em.current == 5 and (em.x[2], em.y[2]) == pytest.approx((3.0, 0.0))
+    em.on_odo(-3.0, 0.0, 1.0)
+    em.on_action(CREATE_NODE, 5, 0, 0.0)  # a repeated CREATE_NODE of a known id: a link to it
+    assert em.n_experiences == 3 and em.current == 0
+    assert [(a, b) for a, b, *_ in em.links] == [(0, 2), (2, 5), (5, 0)]
+    assert em.repaired_actions == 2
+    assert [n["id"] for n in em.export()["nodes"]] == [0, 2, 5]
+
+
+def test_link_starts_at_current_experience_in_fixed_mode_and_at_src_in_compat():
+    for compat, expected in ((False, (4, 2)), (True, (0, 2))):
+        em = ExperienceMap(exp_loops=0, openratslam_compat=compat)
+        for i in range(5):  # a chain 0-1-2-3-4, the map at 4
+            em.on_odo(1.0, 0.0, 1.0)
+            em.on_action(CREATE_NODE, max(i - 1, 0), i, 0.0)
+        n_links = len(em.links)
+        em.on_action(CREATE_EDGE, 0, 2, 0.0)  # src 0 is stale (actions were lost): the map is at 4
+        assert len(em.links) == n_links + 1 and em.links[-1][:2] == expected
+
+
+def test_state_round_trip():
+    em = ExperienceMap(exp_loops=3)
+    for i in range(4):
+        em.on_odo(1.0, 0.3, 1.0)
+        em.on_action(CREATE_NODE, max(i - 1, 0), i, 0.0, stamp=float(i))
+    em.on_action(CREATE_EDGE, 3, 0, 0.0)
+    twin = ExperienceMap(exp_loops=3)
+    twin.load_state_dict(em.state_dict())
+    for m in (em, twin):
+        m.on_odo(0.5, -0.1, 1.0)
+        m.on_action(CREATE_NODE, 0, 4, 0.0)
+    assert twin.export() == em.export()
+
+
+def _action(frame, action, src, dst, vtrans=1.0, vrot=0.0, dt=1.0):
+    from neoslam_stream.messages import Message
+
+    return Message("pose_cells/action", frame, float(frame),
+                   {"action": action, "src_id": src, "dst_id": dst, "relative_rad": 0.0,
+                    "vtrans": vtrans, "vrot": vrot, "dt": dt})
+
+
+def test_stage_publishes_a_pose_per_action_and_the_map_at_flush(tmp_path):
+    import json
+
+    from neoslam_stream.messages import decode, encode
+    from stages.ratslam.adapters import ExperienceMapStage
+
+    st = ExperienceMapStage(exp_initial_em_deg=0, exp_loops=0)
+    st.run_dir = str(tmp_path)
+    msgs = [_action(0, CREATE_NODE, 0, 0), _action(1, 0, 0, 0), _action(2, CREATE_NODE, 0, 1),
+            _action(3, CREATE_NODE, 1, 7)]  # id 7: a CREATE_NODE with a skipped id is fine
+    poses = [st.process("pose_cells/action", m)[0][1] for m in msgs]
+    # pose = current experience + dead reckoning since: 1 m along +x per message
+    assert [p["pose"][0] for p in poses] == pytest.approx([1.0, 2.0, 3.0, 4.0])
+    assert [p["exp_id"] for p in poses] == [0, 0, 1, 7]
+    out = st.flush()
+    assert [t for t, _ in out] == ["experience_map/map"]
+    m = decode(encode(out[0][1]))
+    np.testing.assert_allclose(m["nodes"][:, :3], [[0, 1, 0], [1, 3, 0], [7, 4, 0]])
+    assert m["links"].tolist() == [[0, 1], [1, 7]]
+    saved = json.loads((tmp_path / "map.json").read_text())
+    assert [n["id"] for n in saved["nodes"]] == [0, 1, 7] and len(saved["links"]) == 2
+    assert len((tmp_path / "trajectory.tum").read_text().splitlines()) == 4
+
+
+def test_stage_refuses_actions_without_odometry():
+    from neoslam_stream.messages import Message
+    from neoslam_stream.stage import StageInputError
+    from stages.ratslam.adapters import ExperienceMapStage
+
+    bad = Message("pose_cells/action", 0, 0.0, {"action": 1, "src_id": 0, "dst_id": 0})
+    with pytest.raises(StageInputError):
+        ExperienceMapStage().process("pose_cells/action", bad)

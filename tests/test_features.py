@@ -148,3 +148,17 @@ def test_stage_rejects_corrupt_jpeg():
     bad = Message("image", 0, 0.0, {"compressed": b"\xff\xd8\xff\xe0garbage", "format": "jpeg"})
     with pytest.raises(StageInputError, match="corrupt"):
         st.process("image", bad)
+
+
+def test_failed_batch_does_not_count_strided_frames():
+    # the worker retries a failed batch frame by frame; strided frames must be counted once
+    st = F.make_stage(backbone="random_alexnet", frame_stride=2)
+    st.setup()
+    good = [Message("image", i, 0.0, {"image": np.zeros((16, 16, 3), np.uint8)}) for i in (1, 3)]
+    bad = Message("image", 2, 0.0, {"compressed": b"not an image", "format": "jpeg"})
+    with pytest.raises(StageInputError):
+        st.process_batch("image", [good[0], bad, good[1]])
+    assert st.counters["strided"] == 0
+    for m in (good[0], good[1]):
+        assert st.process("image", m) == []
+    assert st.counters["strided"] == 2

@@ -1,4 +1,4 @@
-"""Local-view cells and visual odometry on small constructed images."""
+"""Local-view cells on small constructed images; the pose-cell stage's event ordering."""
 
 import math
 
@@ -8,7 +8,6 @@ import pytest
 from neoslam_stream.messages import Message
 from stages.ratslam.adapters import LocalViewStage, PoseCellsStage
 from stages.ratslam.local_view import LocalViewCells
-from stages.ratslam.visual_odometry import VisualOdometry, best_shift
 
 
 def test_template_is_block_means_ignoring_leftovers():
@@ -43,17 +42,6 @@ def test_panoramic_relative_rad():
     assert vt == 0 and rad == pytest.approx(math.pi / 2)
 
 
-def test_visual_odometry_shift_sign_and_scale():
-    prof = np.sin(np.linspace(0, 12, 200))
-    off, diff = best_shift(np.roll(prof, 5), prof)
-    assert off == 5 and diff < 0.05
-    vo = VisualOdometry(camera_fov_deg=50, camera_hz=10)
-    img = np.tile((np.sin(np.linspace(0, 20, 200)) * 100 + 120)[None], (30, 1))
-    assert vo.on_image(img) is None
-    vtrans, vrot = vo.on_image(np.roll(img, 4, axis=1))
-    assert vrot == pytest.approx(4 * 50 / 200 * 10 * math.pi / 180)
-
-
 def test_local_view_stage_flags_revisits():
     st = LocalViewStage(template_x_size=8, template_y_size=4, vt_shift_match=1, vt_step_match=1)
     rng = np.random.default_rng(2)
@@ -85,3 +73,96 @@ def test_pose_cells_stage_is_order_independent():
         results.append([(m.frame, m["action"], m["dst_id"]) for _, m in out])
     assert results[0] == results[1] == results[2]
     assert [r[0] for r in results[0]] == list(range(6))  # one action per odometry, in frame order
+
+
+def _brute_force(lv, t):
+    """Reference: every (template, shift) error by plain loops, first minimum wins."""
+    c = lv.cfg
+    X, Y, S = c.template_x_size, c.template_y_size, c.vt_shift_match
+    best = (None, math.inf, 0)
+    for i, tmpl in enumerate(lv.templates):
+        if abs(tmpl.mean() - t.mean()) > c.vt_match_threshold + 0.005:
+            continue
+        if c.vt_panoramic:
+            for off in range(0, X, c.vt_step_match):
+                err = sum(abs(t[y, x] - tmpl[y, (x + off) % X]) for y in range(Y) for x in range(X)) / (X * Y)
+                if err < best[1] - 1e-12:
+                    best = (i, err, off)
+        else:
+            for off in range(0, 2 * S + 1, c.vt_step_match):
+                err = sum(abs(t[y, S + k] - tmpl[y, off + k]) for y in range(Y) for k in range(X - 2 * S))
+                err /= X * Y - 2 * S * Y
+                if err < best[1] - 1e-12:
+                    best = (i, err, off)
+    return best
+
+
+@pytest.mark.parametrize("panoramic", [False, True])
+def test_compiled_match_equals_brute_force_including_ties(panoramic):
+    rng = np.random.default_rng(3)
+    lv = LocalViewCells(template_x_size=12, template_y_size=3, vt_shift_match=3, vt_step_match=1,
+                        vt_match_threshold=0.2, vt_panoramic=panoramic)
+    base = rng.random((3, 12))
+    for _ in range(6):
+        lv.add_template(np.clip(base + rng.normal(0, 0.1, base.shape), 0, 1))
+    lv.add_template(lv.templates[2].copy())  # an exact duplicate: the first copy must win
+    lv.add_template(rng.random((3, 12)))
+    for _ in range(20):
+        q = np.clip(base + rng.normal(0, 0.1, base.shape), 0, 1)
+        ti, err, _rad = lv.compare(q)
+        ref = _brute_force(lv, q)
+        assert ti == ref[0] and err == pytest.approx(ref[1], abs=1e-12)
+    ti, err, _ = lv.compare(lv.templates[2])
+    assert (ti, err) == (2, 0.0)
+
+
+def test_patch_normalisation_clamps_window_indices_like_the_cpp():
+    lv = LocalViewCells(template_x_size=3, template_y_size=1, vt_shift_match=0, vt_step_match=1,
+                        vt_patch_normalise=1)
+    t = lv._patch_normalise(np.array([[0.0, 0.5, 1.0]]), 1)
+    # cell 0: the 3x3 window's clamped columns are (0, 0, 1) in every row: values 0, 0, 0.5
+    mu = 0.5 / 3
+    sd = math.sqrt((2 * mu ** 2 + (0.5 - mu) ** 2) / 3)
+    assert t[0, 0] == pytest.approx(((0 - mu) / sd + 3) / 6)
+    assert t[0, 1] == pytest.approx(0.5)  # the centre cell sits at its window's mean
+    assert t[0, 2] == pytest.approx(1 - t[0, 0])  # mirror image
+
+
+def test_flat_patch_is_neutral_when_fixed_and_one_in_compat_mode():
+    for compat, value in ((False, 0.5), (True, 1.0)):
+        lv = LocalViewCells(template_x_size=4, template_y_size=2, vt_shift_match=0, vt_step_match=1,
+                            vt_patch_normalise=1, openratslam_compat=compat)
+        assert np.all(lv._patch_normalise(np.full((2, 4), 0.3), 1) == value)  # C++: min(1, 0/0) = 1
+
+
+def test_colour_frames_average_channels_like_the_cpp():
+    lv = LocalViewCells(template_x_size=2, template_y_size=1, vt_shift_match=0, vt_step_match=1)
+    img = np.zeros((2, 4, 3), dtype=np.uint8)
+    img[:, :2, 0] = 255  # red block: (255 + 0 + 0) / 3 / 255
+    img[:, 2:] = 51
+    np.testing.assert_allclose(lv.view_template(img), [[1 / 3, 0.2]], rtol=0, atol=1e-15)
+
+
+def test_global_normalisation_scales_to_the_target_mean():
+    lv = LocalViewCells(template_x_size=4, template_y_size=1, vt_shift_match=0, vt_step_match=1,
+                        vt_normalisation=0.4)
+    t = lv.view_template(np.array([[51, 51, 102, 204]], dtype=np.uint8))  # 0.2 0.2 0.4 0.8, mean 0.4
+    np.testing.assert_allclose(t, [[0.2, 0.2, 0.4, 0.8]])
+
+
+def test_bad_input_is_refused():
+    lv = LocalViewCells(template_x_size=60, template_y_size=20, vt_shift_match=4, vt_step_match=1)
+    with pytest.raises(ValueError):
+        lv.view_template(np.zeros((10, 30)))  # smaller than the template
+    with pytest.raises(ValueError):
+        LocalViewCells(template_x_size=8, vt_shift_match=4)  # no columns left to compare
+
+
+def test_state_round_trip_keeps_matching():
+    rng = np.random.default_rng(4)
+    lv = LocalViewCells(template_x_size=16, template_y_size=4, vt_shift_match=2, vt_step_match=1)
+    imgs = [rng.integers(0, 256, (8, 32), dtype=np.uint8) for _ in range(3)]
+    ids = [lv.on_image(im)[0] for im in imgs]
+    twin = LocalViewCells(**lv.cfg.model_dump())
+    twin.load_state_dict(lv.state_dict())
+    assert [twin.on_image(im)[0] for im in imgs] == ids == [0, 1, 2]

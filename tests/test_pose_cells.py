@@ -62,9 +62,9 @@ def test_packet_settles_and_injection_moves_it():
         pc.on_odo(0.0, 0.0, 1.0)
     assert pc.best[0] == pytest.approx(10, abs=1e-6) and pc.best[1] == pytest.approx(10, abs=1e-6)
     # remember a template at a distant pose, then repeatedly inject there
-    pc.templates[0] = [3.0, 3.0, 18.0, 1.0]
+    pc.templates[0] = [3.0, 3.0, 18.0, 1.0, 0.0]  # x, y, th, decay, creation rank
     for k in range(1, 12):
-        pc.templates[k] = [10.0, 10.0, 18.0, 1.0]  # 11 more so that template 0 may inject (signed guard)
+        pc.templates[k] = [10.0, 10.0, 18.0, 1.0, float(k)]  # 11 more so that template 0 may inject (signed guard)
     pc.current_vt = 5
     for _ in range(40):
         pc.on_view_template(0, 0.0)
@@ -87,8 +87,8 @@ def test_injection_index_rounds_in_fixed_mode_truncates_in_compat():
     for compat, cell in ((True, (18, 4, 6)), (False, (18, 5, 7))):
         pc = PoseCellNetwork(openratslam_compat=compat)
         pc.P[:] = 0
-        pc.templates = {k: [10.0, 10.0, 18.0, 1.0] for k in range(12)}
-        pc.templates[0] = [6.7, 4.6, 18.2, 1.0]
+        pc.templates = {k: [10.0, 10.0, 18.0, 1.0, float(k)] for k in range(12)}
+        pc.templates[0] = [6.7, 4.6, 18.2, 1.0, 0.0]
         pc.current_vt = 3
         pc.on_view_template(0)
         assert pc.P[cell] > 0
@@ -127,3 +127,170 @@ def test_skipped_and_repeated_template_ids_do_not_crash():
 def test_nan_odometry_rejected():
     with pytest.raises(ValueError):
         PoseCellNetwork().on_odo(math.nan, 0, 1)
+
+
+def _full_excite_inhibit(P, pc):
+    """Reference: the whole-torus OpenRatSLAM update with explicit 3-D kernels and np.roll."""
+    def conv(A, g):
+        r = len(g) // 2
+        out = np.zeros_like(A)
+        for a in range(-r, r + 1):
+            for b in range(-r, r + 1):
+                for c in range(-r, r + 1):
+                    out += g[a + r] * g[b + r] * g[c + r] * np.roll(A, (a, b, c), axis=(0, 1, 2))
+        return out
+
+    E = conv(P, pc.w_e)
+    Q = E - conv(E, pc.w_i)
+    Q = np.where(Q >= pc.cfg.pc_global_inhib, Q - pc.cfg.pc_global_inhib, 0.0)
+    return Q / Q.sum()
+
+
+@pytest.mark.parametrize("where", ["middle", "across_the_seams", "two_packets"])
+def test_bounded_box_update_equals_whole_torus_update(where):
+    pc = delta_net(pc_dim_xy=15)
+    rng = np.random.default_rng(5)
+    if where == "middle":
+        pc.P[10:13, 6:9, 5:8] = rng.random((3, 3, 3))
+    elif where == "across_the_seams":  # wraps in theta, y and x at once
+        idx = np.ix_([35, 0, 1], [14, 0], [13, 14, 0])
+        pc.P[idx] = rng.random((3, 2, 3))
+    else:  # far apart in every axis: the box falls back to the full torus
+        pc.P[3, 2, 2] = 1.0
+        pc.P[21, 9, 9] = 0.5
+    expected = _full_excite_inhibit(pc.P.copy(), pc)
+    pc._excite_inhibit()
+    np.testing.assert_allclose(pc.P, expected, rtol=0, atol=1e-15)
+
+
+def test_settled_packet_matches_cpp_measurements():
+    # OpenRatSLAM C++ (research notes 1.2): from one cell with no input the packet settles within
+    # ~20 steps to 93 active cells, peak 0.0428, profile 0.273/0.75/1/0.75/0.273 through the peak
+    for n in (11, 21, 30):
+        pc = PoseCellNetwork(pc_dim_xy=n)
+        for _ in range(40):
+            pc.on_odo(0.0, 0.0, 1.0)
+        assert np.count_nonzero(pc.P) == 93
+        k, j, i = np.unravel_index(np.argmax(pc.P), pc.P.shape)
+        peak = pc.P[k, j, i]
+        assert peak == pytest.approx(0.0428, abs=5e-5)
+        np.testing.assert_allclose(pc.P[k, j, i - 2:i + 3] / peak, [0.273, 0.75, 1, 0.75, 0.273], atol=5e-4)
+
+
+def test_ten_newest_guard_counts_creation_order_not_ids():
+    pc = PoseCellNetwork()
+    ids = [500, 3, 77, 12, 9, 41, 8, 6, 60, 2, 90, 33]  # 12 templates, ids skipping about
+    for vt in ids:
+        pc.on_view_template(vt)
+    before = pc.P.copy()
+    pc.on_view_template(500)  # the oldest: outside the 10 newest, so it injects though its id is large
+    assert not np.array_equal(pc.P, before)
+    before = pc.P.copy()
+    pc.on_view_template(3)  # the second oldest template id 3 also may inject
+    assert not np.array_equal(pc.P, before)
+    before = pc.P.copy()
+    pc.on_view_template(2)  # among the 10 newest: no injection although id 2 < 12 - 10
+    assert np.array_equal(pc.P, before)
+
+
+def test_relative_rad_is_not_stale_when_fixed():
+    for compat, expected in ((False, 0.0), (True, math.pi / 2)):
+        pc = PoseCellNetwork(openratslam_compat=compat)
+        for vt in range(12):
+            pc.on_view_template(vt)
+        pc.on_view_template(0, math.pi / 2)  # a panoramic match a quarter turn off: injects
+        pc.on_odo(0, 0, 1)
+        assert pc.get_action()[3] == pytest.approx(math.pi / 2)
+        pc.on_view_template(12, 0.0)  # a new view: no rotation relative to anything
+        pc.on_odo(0, 0, 1)
+        assert pc.get_action()[3] == pytest.approx(expected)
+
+
+def test_large_steps_stay_exact_when_fixed():
+    pc = delta_net()
+    pc.P[9, 4, 4] = 1.0  # theta 90 deg: +x
+    pc._path_integration(2.5, 0.0)  # 2.5 cells at once (the C++ scheme handles at most one)
+    assert pc.P[9, 4, 6] == pytest.approx(0.5) and pc.P[9, 4, 7] == pytest.approx(0.5)
+
+
+def test_state_round_trip():
+    pc = PoseCellNetwork()
+    for vt in (0, 1, 2, 0, 1):
+        pc.on_view_template(vt)
+        pc.on_odo(0.4, 0.1, 1.0)
+        pc.get_action()
+    twin = PoseCellNetwork()
+    twin.load_state_dict(pc.state_dict())
+    for p in (pc, twin):
+        p.on_view_template(2)
+        p.on_odo(0.3, -0.2, 1.0)
+    assert twin.get_action() == pc.get_action() and twin.best == pc.best
+
+
+def _odom(f, dt=0.1):
+    from neoslam_stream.messages import Message
+
+    data = {"vtrans": 0.5, "vrot": 0.1}
+    if dt is not None:
+        data["dt"] = dt
+    return Message("odom", f, f * 0.1, data)
+
+
+def _tmpl(f, vt):
+    from neoslam_stream.messages import Message
+
+    return Message("visual_template", f, f * 0.1, {"id": vt})
+
+
+def _replay(events, **kw):
+    from stages.ratslam.adapters import PoseCellsStage
+
+    st = PoseCellsStage(**kw)
+    out = []
+    for topic, m in events:
+        out += st.process(topic, m)
+    out += st.flush()
+    return [(m.frame, m["action"], m["src_id"], m["dst_id"], m["vtrans"], m["dt"]) for _, m in out]
+
+
+def test_stage_with_strided_templates_is_deterministic_and_complete():
+    odo = [("odom", _odom(f)) for f in range(12)]
+    tpl = [("visual_template", _tmpl(f, f // 4)) for f in range(0, 12, 3)]  # frame_stride 3
+    interleaved = sorted(odo + tpl, key=lambda e: (e[1].frame, e[0] == "odom"))  # templates first
+    late_front_end = odo[:4] + tpl[:1] + odo[4:9] + tpl[1:3] + odo[9:] + tpl[3:]
+    a, b = _replay(interleaved), _replay(late_front_end)
+    assert a == b
+    assert [r[0] for r in a] == list(range(12))  # one action per odometry, in frame order
+    # reference: the same events applied directly in frame order (template before its odometry)
+    pc = PoseCellNetwork()
+    ref = []
+    for f in range(12):
+        if f % 3 == 0:
+            pc.on_view_template(f // 4)
+        pc.on_odo(0.5, 0.1, 0.1)
+        ref.append(pc.get_action()[:3])
+    assert [r[1:4] for r in a] == ref
+
+
+def test_stage_does_not_wait_forever_for_lost_templates():
+    from stages.ratslam.adapters import PoseCellsStage
+
+    st = PoseCellsStage(max_odom_lag=4)
+    st.process("visual_template", _tmpl(0, 0))
+    out = []
+    for f in range(10):  # templates of frames 1.. were dropped
+        out += st.process("odom", _odom(f))
+    assert [m.frame for _, m in out] == list(range(6))  # at most max_odom_lag odometry waits
+
+
+def test_stage_takes_dt_from_stamps_when_odometry_has_none():
+    rows = _replay([("visual_template", _tmpl(0, 0))] + [("odom", _odom(f, dt=None)) for f in range(3)])
+    assert [r[5] for r in rows] == pytest.approx([0.0, 0.1, 0.1])  # the first odometry moves nothing
+
+
+def test_stage_refuses_negative_template_ids():
+    from neoslam_stream.stage import StageInputError
+    from stages.ratslam.adapters import PoseCellsStage
+
+    with pytest.raises(StageInputError):
+        PoseCellsStage().process("visual_template", _tmpl(0, -1))

@@ -106,3 +106,58 @@ def test_projection_does_not_depend_on_batching():
         parts = np.concatenate([bp.project(F[i:i + size]) for i in range(0, 8, size)])
         np.testing.assert_array_equal(parts, whole)
     np.testing.assert_array_equal(bp.project(F[3]), whole[3])
+
+
+def test_compiled_slsbh_of_a_batch_follows_the_definition():
+    # bits_batch uses a compiled sLSBH; check it against the definition on a vector with ties
+    bp = P.BinaryProjector(input_dim=20, seed=2)
+    f = np.random.default_rng(3).standard_normal((4, 20)).astype(np.float32)
+    d = bp.project(f)
+    for row, bits in zip(d, bp.bits_batch(f), strict=True):
+        top = set(np.argsort(-row, kind="stable")[:256].tolist())
+        bottom = {1024 + j for j in np.argsort(row, kind="stable")[:256].tolist()}
+        assert bits.tolist() == sorted(top | bottom)
+
+
+def test_centring_subtracts_the_running_mean_frame_by_frame():
+    # W = 2: m_1 = f_1, m_2 = (f_1 + f_2) / 2, m_3 = m_2 + (f_3 - m_2) / 2 (window reached)
+    f = np.array([[2.0, 4.0], [4.0, 0.0], [10.0, 10.0]], dtype=np.float32)
+    bp = P.BinaryProjector(input_dim=2, seed=0, centre_window=2)
+    out = bp.centre(f)
+    np.testing.assert_allclose(out, [[0, 0], [1, -2], [3.5, 4.0]])
+    # one frame at a time gives the same, so micro-batching cannot change the bits
+    bq = P.BinaryProjector(input_dim=2, seed=0, centre_window=2)
+    np.testing.assert_allclose(np.stack([bq.centre(r) for r in f]), out)
+
+
+def test_centring_off_by_default_and_state_round_trip():
+    rng = np.random.default_rng(4)
+    f = rng.standard_normal((6, 30)).astype(np.float32)
+    plain = P.BinaryProjector(input_dim=30, seed=1)
+    assert plain.centre_window == 0
+    np.testing.assert_array_equal(plain.centre(f), f)
+    a = P.BinaryProjector(input_dim=30, seed=1, centre_window=4)
+    a.bits_batch(f[:3])
+    b = P.BinaryProjector(input_dim=30, seed=1, centre_window=4)
+    b.load_state_dict(a.state_dict())
+    for x, y in zip(a.bits_batch(f[3:]), b.bits_batch(f[3:]), strict=True):
+        np.testing.assert_array_equal(x, y)
+    # a common offset on every frame is removed by centring: bits equal those without it
+    c = P.BinaryProjector(input_dim=30, seed=1, centre_window=4)
+    d = P.BinaryProjector(input_dim=30, seed=1, centre_window=4)
+    for x, y in zip(c.bits_batch(f), d.bits_batch(f + 100.0), strict=True):
+        assert len(set(x.tolist()) ^ set(y.tolist())) <= 4  # float rounding may flip a marginal bit
+
+
+def test_nan_features_are_rejected():
+    bp = P.BinaryProjector(input_dim=10, seed=0, centre_window=3)
+    bad = np.zeros(10, np.float32)
+    bad[2] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        bp.bits(bad)
+    assert bp.n_seen == 0  # a rejected frame leaves the running mean alone
+    stage = P.make_stage(input_dim=10)
+    stage.setup()
+    msg = Message("visual_features", 3, 0.3, {"features": bad, "backbone": "random_alexnet"})
+    with pytest.raises(P.StageInputError, match="NaN"):
+        stage.process("visual_features", msg)

@@ -1,4 +1,4 @@
-"""Sources: folder, video, bags (ROS 1, ROS 2, MCAP), CDR and the zenoh cameras, synthetic world."""
+"""Sources: folder, video, bags (ROS 1, ROS 2, MCAP), CDR and the zenoh cameras (synthetic world: test_synthetic)."""
 
 import math
 import threading
@@ -14,7 +14,6 @@ from neoslam_stream.evaluation import write_tum
 from neoslam_stream.sources import cdr
 from neoslam_stream.sources.bag import BagSource
 from neoslam_stream.sources.files import ImageFolderSource, VideoSource
-from neoslam_stream.sources.synthetic import SyntheticWorldSource
 from neoslam_stream.sources.zenoh_camera import ZenohRos2CameraSource, ros2_key
 
 BAGS = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "rosbag_samples"
@@ -186,23 +185,3 @@ def test_zenoh_ros2_camera_receives_bridge_style_cdr():
     assert got[2].odom[0] == pytest.approx(0.5) and got[2].odom[2] == pytest.approx(0.1)
     assert sum(src.errors.values()) == 1
 
-
-def test_synthetic_world_is_deterministic_and_loops():
-    a = SyntheticWorldSource(frames=30, seed=3)
-    b = SyntheticWorldSource(frames=30, seed=3)
-    fa, fb = list(a), list(b)
-    np.testing.assert_array_equal(fa[-1].image, fb[-1].image)
-    assert fa[-1].odom == fb[-1].odom
-    full = SyntheticWorldSource(seed=0)
-    gt = full.gt
-    lap = full.route_len // 3
-    assert lap * 3 == full.route_len
-    # revisits: the second lap passes the first lap's places; the third drives them the other way
-    np.testing.assert_allclose(gt[lap + 10, :2], gt[10, :2], atol=1e-9)
-    opposite = gt[3 * lap - 11, :2]
-    assert np.min(np.linalg.norm(gt[:lap, :2] - opposite, axis=1)) < 0.05
-    h1 = gt[10, 2]
-    k = int(np.argmin(np.linalg.norm(gt[2 * lap:, :2] - gt[10, :2], axis=1))) + 2 * lap
-    assert abs(math.remainder(gt[k, 2] - h1, 2 * math.pi)) > 2.5  # facing the other way
-    frame = next(iter(SyntheticWorldSource(frames=1)))
-    assert frame.image.shape == (240, 416, 3) and frame.image.std() > 10

@@ -199,3 +199,47 @@ def test_bad_columns_rejected():
         tm.compute([7])
     with pytest.raises(ValueError):
         tm.compute(np.zeros((2, 2), int))
+
+
+def test_random_tie_rule_draws_among_the_least_used_after_the_shuffle():
+    # fresh TM, K = 3: the shuffle of the 3 cells takes 2 draws of std::mt19937(42), the pick is the
+    # 3rd: 4083286876 % 3 = 1 (digit sum 52), so the winner is the column's cell 1
+    tm = tiny(tie_break="random")
+    tm.compute([2])
+    assert tm.getWinnerCells().tolist() == [2 * 3 + 1]
+    assert tm.getActiveCells().tolist() == [6, 7, 8]
+
+
+def test_non_integer_columns_rejected():
+    tm = tiny()
+    with pytest.raises(ValueError, match="integer"):
+        tm.compute(np.array([1.0, np.nan]))
+    tm.compute(np.array([], dtype=float))  # an empty step is allowed, whatever its dtype
+    assert tm.getActiveCells().size == 0
+
+
+def test_load_state_from_another_configuration_rejected():
+    a = tiny()
+    a.compute([0, 1])
+    b = tiny(tie_break="random")
+    with pytest.raises(ValueError, match="tie_break"):
+        b.load_state_dict(a.state_dict())
+
+
+def test_synapse_cap_ties_go_to_the_lower_synapse_id_not_the_lower_slot():
+    tm = tiny(maxSynapsesPerSegment=4, maxNewSynapseCount=3, activationThreshold=3)
+    seg = tm.createSegment(4)
+    tm.add_synapse(seg, 0, 0.3)  # id 0: onto a previous winner
+    tm.add_synapse(seg, 8, 0.05)  # id 1: inactive, falls below epsilon and is destroyed
+    tm.add_synapse(seg, 9, 0.3)  # id 2
+    tm.add_synapse(seg, 10, 0.3)  # id 3: moves into slot 1 when id 1 goes
+    tm.compute([0, 1], learn=False)  # winners: cells 0 and 3
+    # column 1 bursts on its matching segment (pot 1): adapt leaves [0, 10, 9] with 9 and 10 at 0.2;
+    # grow 3 - 1 = 2 of 2 candidates: overrun 3 + 2 - 4 = 1 removes the weaker non-candidate with
+    # the lower synapse id (cell 9, id 2) although cell 10 sits in the earlier slot
+    tm.compute([1], learn=True)
+    pre, perm = tm.synapses_of_segment(seg)
+    assert sorted(pre.tolist()) == [0, 3, 10]
+    got = dict(zip(pre.tolist(), perm.tolist(), strict=True))
+    assert got[0] == pytest.approx(0.6, abs=1e-6)  # 0.3 + 0.1, then raised to initialPermanence
+    assert got[3] == pytest.approx(0.6, abs=1e-6) and got[10] == pytest.approx(0.2, abs=1e-6)

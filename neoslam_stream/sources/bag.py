@@ -3,12 +3,17 @@
 Frames are the messages of ``image_topic`` (sensor_msgs Image or CompressedImage). Each frame
 carries the wheel odometry of the interval since the previous frame (``odom_topic``,
 nav_msgs/Odometry: forward speed twist.linear.x and yaw rate twist.angular.z, as OpenRatSLAM reads
-them, integrated over the interval so that summing vtrans*dt and vrot*dt over frames reproduces the
-odometry), and the ground truth nearest in time (``groundtruth_topic``: geometry_msgs PoseStamped /
-PoseWithCovarianceStamped, nav_msgs Odometry, or sensor_msgs NavSatFix converted to local metres
-with an equirectangular projection around the first valid fix; fixes with a zero latitude or
-longitude or a negative status are skipped, the previous position is kept). Without an image topic, frames are
-the odometry messages (odometry-only runs of the back end). Stamps are header stamps.
+them; each twist holds until the next odometry message and is integrated up to the frame's stamp,
+so summing vtrans*dt and vrot*dt over frames reproduces the odometry), and the ground truth at the
+frame's stamp (``groundtruth_topic``: geometry_msgs PoseStamped / PoseWithCovarianceStamped,
+nav_msgs Odometry, or sensor_msgs NavSatFix converted to local metres with an equirectangular
+projection around the first valid fix; fixes with a zero latitude or longitude or a negative
+status are dropped). Ground truth is read in a first pass and interpolated linearly in time
+between the two samples around each frame (heading: the short way round; NavSatFix has none, its
+heading is the course over ground); frames more than ``groundtruth_max_gap_s`` before the first or
+after the last sample get none. Without an image topic, frames are the odometry messages (or the
+ground-truth messages): odometry-only runs of the back end. Stamps are header stamps (the bag's
+receive time when a header stamp is zero).
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ EARTH_RADIUS = 6378137.0
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 POSE_TYPES = ("geometry_msgs/msg/PoseStamped", "geometry_msgs/msg/PoseWithCovarianceStamped",
               "nav_msgs/msg/Odometry", "sensor_msgs/msg/NavSatFix")
+ROLE_TYPES = {"image": IMAGE_TYPES, "odom": ("nav_msgs/msg/Odometry",), "groundtruth": POSE_TYPES}
 
 
 def _stamp(msg: Any, fallback_ns: int) -> float:
@@ -37,6 +43,25 @@ def _stamp(msg: Any, fallback_ns: int) -> float:
 
 def _yaw(q: Any) -> float:
     return math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
+
+
+def interpolate_pose(table: np.ndarray, t: float, max_gap: float) -> tuple[float, float, float] | None:
+    """(x, y, theta) at time ``t`` from an (n, 4) table of stamp, x, y, unwrapped theta sorted by
+    stamp: linear between the two samples around ``t``; the end sample within ``max_gap`` seconds
+    outside the table's span; None farther out."""
+    if len(table) == 0:
+        return None
+    ts = table[:, 0]
+    if t < ts[0] - max_gap or t > ts[-1] + max_gap:
+        return None
+    j = int(np.searchsorted(ts, t))
+    if j == 0 or j == len(ts):
+        row = table[min(j, len(ts) - 1)]
+        return (float(row[1]), float(row[2]), float(math.remainder(row[3], 2 * math.pi)))
+    a, b = table[j - 1], table[j]
+    w = 0.0 if b[0] <= a[0] else (t - a[0]) / (b[0] - a[0])
+    x, y, th = a[1:] + w * (b[1:] - a[1:])
+    return (float(x), float(y), float(math.remainder(th, 2 * math.pi)))
 
 
 def image_from_msg(msg: Any, msgtype: str) -> dict[str, Any]:
@@ -56,9 +81,19 @@ def image_from_msg(msg: Any, msgtype: str) -> dict[str, Any]:
 
 
 class BagSource(Source):
+    """Frames of a recorded bag (see the module docstring for what each frame carries).
+
+    ``path``: a ROS 1 ``.bag`` file, a ROS 2 bag folder (``metadata.yaml`` + ``.db3``/``.mcap``) or a
+    single ``.mcap`` file. ``image_topic`` / ``odom_topic`` / ``groundtruth_topic``: topic names
+    (at least one; each is checked against the bag's topics and their types when the source is
+    built). ``max_frames`` stops early. ``typestore``: the rosbags type store for bags that carry no
+    message definitions (ROS 2). ``groundtruth_max_gap_s``: how far before the first / after the
+    last ground-truth sample a frame still gets the nearest one.
+    """
+
     def __init__(self, path: str, image_topic: str | None = None, odom_topic: str | None = None,
                  groundtruth_topic: str | None = None, max_frames: int | None = None,
-                 typestore: str = "ROS2_HUMBLE") -> None:
+                 typestore: str = "ROS2_HUMBLE", groundtruth_max_gap_s: float = 5.0) -> None:
         from rosbags.highlevel import AnyReader
         from rosbags.typesys import Stores, get_typestore
 
@@ -71,11 +106,15 @@ class BagSource(Source):
         self._reader_cls = AnyReader
         self._typestore = get_typestore(getattr(Stores, typestore))
         self.max_frames = max_frames
+        self.groundtruth_max_gap_s = groundtruth_max_gap_s
         with AnyReader([self.path], default_typestore=self._typestore) as reader:
             available = {c.topic: c.msgtype for c in reader.connections}
             for role, topic in self.topics.items():
                 if topic and topic not in available:
                     raise ValueError(f"{role} topic {topic!r} not in {self.path}; it has {sorted(available)}")
+                if topic and available[topic] not in ROLE_TYPES[role]:
+                    raise ValueError(f"{role} topic {topic!r} is {available[topic]}; a {role} topic must be one "
+                                     f"of {', '.join(ROLE_TYPES[role])}")
             frame_topic = image_topic or odom_topic or groundtruth_topic
             count = sum(c.msgcount for c in reader.connections if c.topic == frame_topic)
             duration = max(1e-9, (reader.end_time - reader.start_time) * 1e-9)
@@ -87,14 +126,15 @@ class BagSource(Source):
         frame_topic = self.topics["image"] or self.topics["odom"] or self.topics["groundtruth"]
         wanted = {t for t in self.topics.values() if t}
         with self._reader_cls([self.path], default_typestore=self._typestore) as reader:
+            table = self._groundtruth_table(reader) if self.topics["groundtruth"] else None
+            if frame_topic != self.topics["groundtruth"]:
+                wanted.discard(self.topics["groundtruth"])  # already in the table
             conns = [c for c in reader.connections if c.topic in wanted]
             frame = 0
             last_odom_t: float | None = None
             v = w = 0.0
             acc_d = acc_th = 0.0
             prev_frame_t: float | None = None
-            origin: tuple[float, float] | None = None
-            gt: tuple[float, float, float] | None = None
             for conn, t_ns, raw in reader.messages(connections=conns):
                 msg = reader.deserialize(raw, conn.msgtype)
                 t = _stamp(msg, t_ns)
@@ -104,8 +144,6 @@ class BagSource(Source):
                         acc_th += w * (t - last_odom_t)
                     v, w = float(msg.twist.twist.linear.x), float(msg.twist.twist.angular.z)
                     last_odom_t = t
-                if conn.topic == self.topics["groundtruth"]:
-                    gt, origin = self._pose(msg, conn.msgtype, origin, gt)
                 if conn.topic != frame_topic:
                     continue
                 if last_odom_t is not None and conn.topic != self.topics["odom"] and t > last_odom_t:
@@ -119,27 +157,43 @@ class BagSource(Source):
                 acc_d = acc_th = 0.0
                 prev_frame_t = t
                 fields = image_from_msg(msg, conn.msgtype) if conn.topic == self.topics["image"] else {}
+                gt = None if table is None else interpolate_pose(table, t, self.groundtruth_max_gap_s)
                 yield SourceFrame(frame=frame, stamp=t, odom=odom, groundtruth=gt, **fields)
                 frame += 1
                 if self.max_frames and frame >= self.max_frames:
                     return
 
-    @staticmethod
-    def _pose(msg: Any, msgtype: str, origin: tuple[float, float] | None,
-              last: tuple[float, float, float] | None) -> tuple[Any, Any]:
-        if msgtype == "sensor_msgs/msg/NavSatFix":
-            lat, lon = float(msg.latitude), float(msg.longitude)
-            status = getattr(getattr(msg, "status", None), "status", 0)
-            if lat == 0.0 or lon == 0.0 or status < 0 or not (math.isfinite(lat) and math.isfinite(lon)):
-                return last, origin  # no fix, or a receiver's zero placeholder (seen in real bags)
-            if origin is None:
-                origin = (lat, lon)
-            x = EARTH_RADIUS * math.radians(lon - origin[1]) * math.cos(math.radians(origin[0]))
-            y = EARTH_RADIUS * math.radians(lat - origin[0])
-            return (x, y, 0.0), origin
-        pose = msg.pose.pose if msgtype in ("geometry_msgs/msg/PoseWithCovarianceStamped",
-                                            "nav_msgs/msg/Odometry") else msg.pose
-        return (float(pose.position.x), float(pose.position.y), _yaw(pose.orientation)), origin
+    def _groundtruth_table(self, reader: Any) -> np.ndarray:
+        """(n, 4) stamp, x, y, theta of every valid ground-truth message, in time order."""
+        conns = [c for c in reader.connections if c.topic == self.topics["groundtruth"]]
+        rows: list[tuple[float, float, float, float]] = []
+        origin: tuple[float, float] | None = None
+        gps = False
+        for conn, t_ns, raw in reader.messages(connections=conns):
+            msg = reader.deserialize(raw, conn.msgtype)
+            t = _stamp(msg, t_ns)
+            if conn.msgtype == "sensor_msgs/msg/NavSatFix":
+                gps = True
+                lat, lon = float(msg.latitude), float(msg.longitude)
+                status = getattr(getattr(msg, "status", None), "status", 0)
+                if lat == 0.0 or lon == 0.0 or status < 0 or not (math.isfinite(lat) and math.isfinite(lon)):
+                    continue  # no fix, or a receiver's zero placeholder (seen in real bags)
+                if origin is None:
+                    origin = (lat, lon)
+                x = EARTH_RADIUS * math.radians(lon - origin[1]) * math.cos(math.radians(origin[0]))
+                y = EARTH_RADIUS * math.radians(lat - origin[0])
+                rows.append((t, x, y, 0.0))
+                continue
+            pose = msg.pose.pose if conn.msgtype in ("geometry_msgs/msg/PoseWithCovarianceStamped",
+                                                     "nav_msgs/msg/Odometry") else msg.pose
+            rows.append((t, float(pose.position.x), float(pose.position.y), _yaw(pose.orientation)))
+        table = np.array(rows, dtype=np.float64).reshape(-1, 4)
+        table = table[np.argsort(table[:, 0], kind="stable")]
+        if gps and len(table) > 1:  # course over ground: the direction of travel between fixes
+            d = np.gradient(table[:, 1:3], axis=0)
+            table[:, 3] = np.arctan2(d[:, 1], d[:, 0])
+        table[:, 3] = np.unwrap(table[:, 3])
+        return table
 
     def info(self) -> dict[str, Any]:
         return {"kind": "bag", "path": str(self.path), "topics": self.topics, "frames": self.length,

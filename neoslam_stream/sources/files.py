@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 
 from ..evaluation import read_tum
+from .bag import interpolate_pose
 from .base import Source, SourceFrame
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".ppm", ".pgm")
@@ -33,10 +34,16 @@ def odometry_between(odo: np.ndarray, t0: float, t1: float) -> tuple[float, floa
 
 class ImageFolderSource(Source):
     """Images of a folder in name order (``images/`` inside it if present), with optional
-    ``odometry.tum`` and ``groundtruth.tum``; stamps from the odometry file, else ``frame / rate_hz``."""
+    ``odometry.tum`` and ``groundtruth.tum`` (or the files named by ``odometry`` / ``groundtruth``).
+
+    ``odometry.tum`` holds one odometry pose per image (row i belongs to image i): it gives the
+    frame stamps (else ``frame / rate_hz``) and each frame's (vtrans, vrot, dt) as the motion
+    between consecutive poses. Ground truth is interpolated at each frame's stamp (any rate).
+    """
 
     def __init__(self, path: str, rate_hz: float = 10.0, odometry: str | None = None,
-                 groundtruth: str | None = None, max_frames: int | None = None) -> None:
+                 groundtruth: str | None = None, max_frames: int | None = None,
+                 groundtruth_max_gap_s: float = 5.0) -> None:
         root = Path(path)
         if not root.is_dir():
             raise FileNotFoundError(f"image folder {root} does not exist")
@@ -52,6 +59,10 @@ class ImageFolderSource(Source):
         gt_path = Path(groundtruth) if groundtruth else root / "groundtruth.tum"
         self.odo = read_tum(odo_path) if odo_path.exists() else None
         self.gt = read_tum(gt_path) if gt_path.exists() else None
+        if self.gt is not None:  # sorted, headings unwrapped: ready for interpolation in time
+            self.gt = self.gt[np.argsort(self.gt[:, 0], kind="stable")]
+            self.gt[:, 3] = np.unwrap(self.gt[:, 3])
+        self.groundtruth_max_gap_s = groundtruth_max_gap_s
         self.root = root
 
     def __iter__(self) -> Iterator[SourceFrame]:
@@ -63,8 +74,7 @@ class ImageFolderSource(Source):
             if self.odo is not None:
                 odom = odometry_between(self.odo, prev_t if prev_t is not None else t, t)
             if self.gt is not None:
-                j = int(np.clip(np.searchsorted(self.gt[:, 0], t), 0, len(self.gt) - 1))
-                gt = tuple(float(v) for v in self.gt[j, 1:4])
+                gt = interpolate_pose(self.gt, t, self.groundtruth_max_gap_s)
             prev_t = t
             if img is None:  # unreadable file: pass the bytes on, the stage reports the fault
                 yield SourceFrame(i, t, compressed=f.read_bytes(), format=f.suffix.lstrip("."), odom=odom,

@@ -53,9 +53,16 @@ class _Live(Source):
         self.timeout_s = timeout_s
         self.errors: dict[str, int] = {}
         self.received = 0
+        self.dropped = 0
 
-    def _push(self, item: Any) -> None:
+    def _push(self, item: dict[str, Any]) -> None:
         with self._cond:
+            if len(self._ring) == self._ring.maxlen:
+                # the oldest frame is dropped, its motion is not: the next frame carries it
+                old = self._ring.popleft()
+                nxt = self._ring[0] if self._ring else item
+                nxt["acc"] = (old["acc"][0] + nxt["acc"][0], old["acc"][1] + nxt["acc"][1])
+                self.dropped += 1
             self._ring.append(item)
             self.received += 1
             self._cond.notify_all()
@@ -86,12 +93,20 @@ class _Live(Source):
 
 
 class ZenohRos2CameraSource(_Live):
+    """Frames of a ROS 2 camera topic bridged by zenoh-bridge-ros2dds (raw CDR payloads).
+
+    ``image_topic`` / ``odom_topic`` are ROS 2 topic names; ``namespace`` the bridge's ``-n``
+    option; ``connect`` / ``listen`` zenoh endpoints (the bridge's router: ``tcp/host:7447``);
+    ``capacity`` frames are kept when the consumer is slower (the oldest go first);
+    ``timeout_s`` ends the stream after that long without a frame (None: only ``close()`` does).
+    """
+
     def __init__(self, image_topic: str, image_type: str = "sensor_msgs/msg/Image", odom_topic: str | None = None,
                  namespace: str | None = None, connect: list[str] | None = None, listen: list[str] | None = None,
                  capacity: int = 2, timeout_s: float | None = None, mode: str = "peer") -> None:
-        super().__init__(connect, listen, capacity, timeout_s, mode)
         if image_type not in ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"):
             raise ValueError(f"image_type {image_type!r} must be sensor_msgs/msg/Image or CompressedImage")
+        super().__init__(connect, listen, capacity, timeout_s, mode)
         self.image_type = image_type
         self.keys = {"image": ros2_key(image_topic, namespace)}
         self._odom: tuple[float, float, float] | None = None  # t, v, w
@@ -130,6 +145,13 @@ class ZenohRos2CameraSource(_Live):
             self._error(str(exc))
             return
         with self._lock:
+            t = item["stamp"]
+            if self._odom is not None and t > self._odom[0]:
+                # the last twist holds until the frame (as the bag reader integrates it)
+                t0, v, w = self._odom
+                self._acc[0] += v * (t - t0)
+                self._acc[1] += w * (t - t0)
+                self._odom = (t, v, w)
             item["acc"] = tuple(self._acc)
             self._acc = [0.0, 0.0]
         self._push(item)
@@ -151,17 +173,37 @@ class ZenohRos2CameraSource(_Live):
 
     def info(self) -> dict[str, Any]:
         return {"kind": "zenoh-ros2", "keys": self.keys, "type": self.image_type, "received": self.received,
-                "errors": self.errors}
+                "dropped": self.dropped, "errors": self.errors}
 
 
 class ZenohImageSource(_Live):
-    """Our msgpack ``image`` messages (plus optional odometry inside them) from any zenoh key."""
+    """Our msgpack ``image`` messages from any zenoh key (a non-ROS camera), with optional
+    odometry: our ``odom`` messages on ``odom_key``, each the motion (vtrans, vrot, dt) of its own
+    interval; the motions received between two images are summed into the later image's odometry.
+    """
 
-    def __init__(self, key: str, connect: list[str] | None = None, listen: list[str] | None = None,
-                 capacity: int = 2, timeout_s: float | None = None, mode: str = "peer") -> None:
+    def __init__(self, key: str, odom_key: str | None = None, connect: list[str] | None = None,
+                 listen: list[str] | None = None, capacity: int = 2, timeout_s: float | None = None,
+                 mode: str = "peer") -> None:
         super().__init__(connect, listen, capacity, timeout_s, mode)
         self.key = key
+        self.odom_key = odom_key
+        self._acc = [0.0, 0.0]
+        self._lock = threading.Lock()
         self._sub = self._session.declare_subscriber(key, self._on_sample)
+        if odom_key:
+            self._odom_sub = self._session.declare_subscriber(odom_key, self._on_odom)
+
+    def _on_odom(self, sample: Any) -> None:
+        try:
+            msg = decode_message(sample.payload.to_bytes(), expected_type="odom")
+        except MessageError as exc:
+            self._error(str(exc))
+            return
+        dt = float(msg.data.get("dt") or 0.0)
+        with self._lock:
+            self._acc[0] += float(msg.data["vtrans"]) * dt
+            self._acc[1] += float(msg.data["vrot"]) * dt
 
     def _on_sample(self, sample: Any) -> None:
         try:
@@ -169,20 +211,31 @@ class ZenohImageSource(_Live):
         except MessageError as exc:
             self._error(str(exc))
             return
-        self._push(msg)
+        with self._lock:
+            acc = tuple(self._acc)
+            self._acc = [0.0, 0.0]
+        self._push({"msg": msg, "acc": acc})
 
     def __iter__(self) -> Iterator[SourceFrame]:
         frame = 0
+        prev_t: float | None = None
         while True:
-            msg = self._next()
-            if msg is None:
+            item = self._next()
+            if item is None:
                 return
-            d = msg.data
-            if d.get("image") is not None:
-                yield SourceFrame(frame, msg.stamp, image=d["image"].copy(), encoding=d.get("encoding", "rgb8"))
+            msg, (d, th) = item["msg"], item["acc"]
+            dt = 0.0 if prev_t is None else max(0.0, msg.stamp - prev_t)
+            prev_t = msg.stamp
+            odom = ((d / dt, th / dt, dt) if dt > 0 else (0.0, 0.0, 0.0)) if self.odom_key else None
+            data = msg.data
+            if data.get("image") is not None:
+                yield SourceFrame(frame, msg.stamp, image=data["image"].copy(),
+                                  encoding=data.get("encoding") or "rgb8", odom=odom)
             else:
-                yield SourceFrame(frame, msg.stamp, compressed=bytes(d["compressed"]), format=d.get("format"))
+                yield SourceFrame(frame, msg.stamp, compressed=bytes(data["compressed"]),
+                                  format=data.get("format"), odom=odom)
             frame += 1
 
     def info(self) -> dict[str, Any]:
-        return {"kind": "zenoh", "key": self.key, "received": self.received, "errors": self.errors}
+        return {"kind": "zenoh", "key": self.key, "odom_key": self.odom_key, "received": self.received,
+                "dropped": self.dropped, "errors": self.errors}

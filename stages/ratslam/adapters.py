@@ -24,14 +24,20 @@ import numpy as np
 from neoslam_stream.messages import Message
 from neoslam_stream.stage import Output, StageAdapter, StageInputError
 
-from ..imaging import decode_grey
-from .experience_map import ExperienceMap
-from .local_view import LocalViewCells
+from ..imaging import decode_grey, decode_rgb
+from .experience_map import ExperienceMap, _relax
+from .local_view import LocalViewCells, _best_match
 from .pose_cells import PoseCellNetwork
 from .visual_odometry import VisualOdometry
 
 
 class PoseCellsStage(StageAdapter):
+    """Pose cells in a stage: ``visual_template`` + ``odom`` -> one ``pose_cells/action`` per odometry.
+
+    ``max_odom_lag``: how many odometry (or template) messages may wait for their partner before
+    the oldest is processed without it; other parameters are :class:`PoseCellConfig`'s.
+    """
+
     inputs = ("visual_template", "odom")
     outputs = ("pose_cells/action",)
 
@@ -44,10 +50,15 @@ class PoseCellsStage(StageAdapter):
         self.last_template_frame = -1
         self.max_odom_frame = -1
         self.actions = {0: 0, 1: 0, 2: 0, 3: 0}
+        self.prev_odom_stamp: float | None = None
 
     def _odo(self, msg: Message, via: Message | None = None) -> Output:
         vtrans, vrot = float(msg["vtrans"]), float(msg["vrot"])
-        dt = float(msg.data.get("dt", 0.1))
+        if msg.data.get("dt") is not None:
+            dt = float(msg["dt"])
+        else:  # OpenRatSLAM's rule: the time since the previous odometry (the first one moves nothing)
+            dt = 0.0 if self.prev_odom_stamp is None else msg.stamp - self.prev_odom_stamp
+        self.prev_odom_stamp = msg.stamp
         if not (math.isfinite(dt) and dt >= 0):
             raise StageInputError(f"odometry dt {dt} is not a finite non-negative number")
         self.pc.on_odo(vtrans, vrot, dt)
@@ -107,13 +118,15 @@ class PoseCellsStage(StageAdapter):
 
     def info(self) -> dict[str, Any]:
         return {"templates": len(self.pc.templates), "experiences": len(self.pc.experiences),
-                "actions": {str(k): v for k, v in self.actions.items()}, "pending_odom": len(self.pending)}
+                "actions": {str(k): v for k, v in self.actions.items()}, "pending_odom": len(self.pending),
+                "best_pose_cells": [round(v, 3) for v in self.pc.best]}
 
     def state_dict(self) -> dict[str, Any]:
         from neoslam_stream.messages import encode
 
         return {"pc": self.pc.state_dict(), "last_template_frame": self.last_template_frame,
                 "max_odom_frame": self.max_odom_frame,
+                "prev_odom_stamp": -1.0 if self.prev_odom_stamp is None else self.prev_odom_stamp,
                 "pending": [np.frombuffer(encode(m), dtype=np.uint8) for m in self.pending.values()],
                 "templates_waiting": [np.frombuffer(encode(m), dtype=np.uint8)
                                       for m in self.templates_waiting.values()]}
@@ -124,6 +137,8 @@ class PoseCellsStage(StageAdapter):
         self.pc.load_state_dict(st["pc"])
         self.last_template_frame = int(st["last_template_frame"])
         self.max_odom_frame = int(st["max_odom_frame"])
+        stamp = float(st.get("prev_odom_stamp", -1.0))
+        self.prev_odom_stamp = None if stamp < 0 else stamp
         self.pending, self.templates_waiting = OrderedDict(), OrderedDict()
         for key, store in (("pending", self.pending), ("templates_waiting", self.templates_waiting)):
             for raw in st[key]:
@@ -132,6 +147,10 @@ class PoseCellsStage(StageAdapter):
 
 
 class ExperienceMapStage(StageAdapter):
+    """Experience map in a stage: ``pose_cells/action`` (with its odometry) -> ``experience_map/pose``
+    per message; ``experience_map/map`` and ``map.json`` + ``trajectory.tum`` (when ``run_dir`` is
+    set) at flush. Parameters: :class:`ExperienceMapConfig`'s."""
+
     inputs = ("pose_cells/action",)
     outputs = ("experience_map/pose", "experience_map/map")
 
@@ -140,11 +159,14 @@ class ExperienceMapStage(StageAdapter):
         self.em = ExperienceMap(**params)
         self.trajectory: list[tuple[int, float, float, float, float, int]] = []
 
+    def setup(self) -> None:
+        warm_up_numba()
+
     def process(self, topic: str, msg: Message) -> Output:
         d = msg.data
         for k in ("vtrans", "vrot", "dt"):
-            if k not in d:
-                raise StageInputError(f"pose_cells/action lacks {k!r}")
+            if not isinstance(d.get(k), (int, float)) or isinstance(d.get(k), bool) or not math.isfinite(d[k]):
+                raise StageInputError(f"pose_cells/action field {k!r} missing or not a finite number")
         self.em.on_odo(float(d["vtrans"]), float(d["vrot"]), float(d["dt"]))
         action = int(d["action"])
         if action:
@@ -171,8 +193,8 @@ class ExperienceMapStage(StageAdapter):
                                                {"nodes": nodes, "links": links}))]
 
     def info(self) -> dict[str, Any]:
-        return {"experiences": self.em.n_experiences, "links": len(self.em.links),
-                "relax_ms_last": self.em.relax_time_s * 1e3}
+        return {"experiences": self.em.n_experiences, "links": self.em.n_links,
+                "repaired_actions": self.em.repaired_actions, "relax_ms_last": self.em.relax_time_s * 1e3}
 
     def state_dict(self) -> dict[str, Any]:
         return {"em": self.em.state_dict(), "trajectory": [list(t) for t in self.trajectory]}
@@ -192,7 +214,20 @@ def write_run_outputs(run_dir: Path, export: dict[str, Any], trajectory: list) -
     write_tum(run_dir / "trajectory.tum", [(stamp, x, y, th) for _f, stamp, x, y, th, _e in trajectory])
 
 
+def camera_pixels(msg: Message) -> np.ndarray:
+    """The frame as OpenRatSLAM reads it: grey frames as HxW, colour frames as HxWx3 (the RatSLAM
+    stages sum the channels as the C++ does, rather than using luma weights)."""
+    raw = msg.data.get("image")
+    if raw is not None and np.asarray(raw).ndim == 2:
+        return decode_grey(msg)
+    return decode_rgb(msg)
+
+
 class LocalViewStage(StageAdapter):
+    """RatSLAM's local-view cells in a stage: ``image`` -> ``visual_template`` (id, relative_rad,
+    is_loop_closure, best_score = the match error); ``templates.csv`` at flush when ``run_dir`` is
+    set. Parameters: :class:`LocalViewConfig`'s."""
+
     inputs = ("image",)
     outputs = ("visual_template",)
 
@@ -202,8 +237,11 @@ class LocalViewStage(StageAdapter):
         self.rows: list[tuple] = []
         self.prev = -1
 
+    def setup(self) -> None:
+        warm_up_numba()
+
     def process(self, topic: str, msg: Message) -> Output:
-        grey = decode_grey(msg)
+        grey = camera_pixels(msg)
         n_before = len(self.lv.templates)
         try:
             vt, rad = self.lv.on_image(grey)
@@ -237,6 +275,9 @@ class LocalViewStage(StageAdapter):
 
 
 class VisualOdometryStage(StageAdapter):
+    """RatSLAM's visual odometry in a stage: ``image`` -> ``odom`` (vtrans, vrot, dt from the image
+    stamps; zero motion on the first frame). Parameters: :class:`VisualOdometryConfig`'s."""
+
     inputs = ("image",)
     outputs = ("odom",)
 
@@ -246,15 +287,25 @@ class VisualOdometryStage(StageAdapter):
         self.prev_stamp: float | None = None
 
     def process(self, topic: str, msg: Message) -> Output:
-        grey = decode_grey(msg)
+        img = camera_pixels(msg)
+        dt = 1.0 / self.vo.cfg.camera_hz if self.prev_stamp is None else msg.stamp - self.prev_stamp
+        if dt < 0:
+            raise StageInputError(f"image stamp {msg.stamp} is earlier than the previous one ({self.prev_stamp})")
         try:
-            res = self.vo.on_image(grey)
+            res = self.vo.on_image(img, dt)
         except ValueError as exc:
             raise StageInputError(str(exc)) from None
-        dt = 1.0 / self.vo.cfg.camera_hz if self.prev_stamp is None else max(0.0, msg.stamp - self.prev_stamp)
         self.prev_stamp = msg.stamp
         vtrans, vrot = res if res is not None else (0.0, 0.0)
         return [("odom", msg.derive("odom", {"vtrans": vtrans, "vrot": vrot, "dt": dt}))]
+
+
+def warm_up_numba() -> None:
+    """Compile (or load from the cache) the numba kernels before the first frame is timed."""
+    z = np.zeros(2)
+    _relax(z.copy(), z.copy(), z.copy(), np.zeros(1, np.int64), np.ones(1, np.int64), z[:1].copy(),
+           z[:1].copy(), z[:1].copy(), 1, 0.5)
+    _best_match(np.zeros((1, 1, 4)), np.zeros(1, np.int64), np.zeros((1, 4)), 1, 1, False)
 
 
 def make_pose_cells_stage(**params: Any) -> PoseCellsStage:

@@ -19,11 +19,15 @@ moves layer k by dx = v sin(theta_k), dy = v cos(theta_k) cells (as OpenRatSLAM)
    mass wrapping through one corner of each layer is lost (0.05-0.12 % per step). Fixed: an exact,
    mass-conserving bilinear shift on the torus.
 2. *Unsigned guard*: "the 10 newest templates do not inject" is off while fewer than 10 templates
-   exist (size_t wrap-round), so early templates inject immediately. Fixed: signed comparison.
+   exist (size_t wrap-round), so early templates inject immediately. Fixed: signed comparison, by
+   creation order rather than by id (ids from a front end may skip).
 3. *Truncated injection index*: the C++ casts the stored pose to int (MATLAB rounds) and silently
    skips an index equal to N. Fixed: rounded and wrapped onto the torus.
 4. *No SET_NODE*: the C++ sends CREATE_EDGE even to an experience already linked to the current
    one (its SET_NODE branch is dead). Fixed: SET_NODE when the link exists.
+5. *Stale relative rotation*: ``vt_delta_pc_th`` is only updated when a template injects, so a
+   panoramic rotation keeps biasing delta_pc and the actions' relative_rad afterwards. Fixed: it
+   follows the current view's relative_rad on every template message.
 
 Template ids that skip or repeat never crash: an unknown id is a new template wherever it falls.
 """
@@ -61,6 +65,23 @@ class PoseCellConfig(BaseModel):
     openratslam_compat: bool = False
 
 
+def _wrapped_support(mask: np.ndarray, margin: int) -> np.ndarray | None:
+    """Indices of the shortest circular arc holding every True of ``mask``, widened by ``margin``
+    on both sides; None when that covers the whole circle (or nothing is active)."""
+    n = mask.size
+    on = np.flatnonzero(mask)
+    if on.size == 0:
+        return None
+    # the arc is the complement of the largest circular gap between consecutive active indices
+    gaps = np.diff(np.concatenate([on, on[:1] + n]))
+    k = int(np.argmax(gaps))
+    start = int(on[(k + 1) % on.size])
+    length = n - int(gaps[k]) + 1
+    if length + 2 * margin >= n:
+        return None
+    return (start - margin + np.arange(length + 2 * margin)) % n
+
+
 def gaussian_1d(dim: int, var: int) -> np.ndarray:
     """Normalised 1-D kernel; the 3-D OpenRatSLAM kernel is its outer product (exactly separable)."""
     c = dim // 2
@@ -69,6 +90,13 @@ def gaussian_1d(dim: int, var: int) -> np.ndarray:
 
 
 class PoseCellNetwork:
+    """OpenRatSLAM's ``PosecellNetwork``: activity ``P[th, y, x]`` of pc_dim_th x pc_dim_xy^2 cells.
+
+    Call :meth:`on_view_template` for every template message and :meth:`on_odo` for every odometry
+    message, then :meth:`get_action` after each odometry step. ``best`` is the decoded pose (x, y,
+    th in cell units), ``experiences`` the pose-cell side of the experience map.
+    """
+
     def __init__(self, **params: Any) -> None:
         self.cfg = PoseCellConfig(**params)
         c = self.cfg
@@ -79,7 +107,7 @@ class PoseCellNetwork:
         self.P = np.zeros((self.T, self.N, self.N))
         self.best = (float(self.N // 2), float(self.N // 2), float(self.T // 2))  # x, y, th
         self.P[self.T // 2, self.N // 2, self.N // 2] = 1.0
-        self.templates: dict[int, list[float]] = {}  # id -> [x, y, th, decay]
+        self.templates: dict[int, list[float]] = {}  # id -> [x, y, th, decay, creation rank]
         self.experiences: list[tuple[float, float, float, int]] = []  # x, y, th, vt
         self.template_exps: dict[int, list[int]] = {}
         self.links: set[tuple[int, int]] = set()
@@ -92,19 +120,44 @@ class PoseCellNetwork:
 
     # ---------------------------------------------------------------- activity
     def _excite_inhibit(self) -> None:
+        """Excitation P <- P (*) W_e, inhibition P <- P - P (*) W_i, global inhibition, normalisation.
+
+        The packet occupies a small part of the torus, so the correlations run on the wrapped
+        bounding box of the active cells plus the kernels' reach (pc_w_e_dim//2 + pc_w_i_dim//2) on
+        each side, zero-padded: every product they skip is a product with an inactive cell, so the
+        result equals the full wrapped correlation (axes where the box would cover the torus use
+        the full axis with wrap-around).
+        """
         P = self.P
+        reach = self.cfg.pc_w_e_dim // 2 + self.cfg.pc_w_i_dim // 2
+        active = P != 0
+        idx = [_wrapped_support(active.any(axis=(1, 2)), reach),
+               _wrapped_support(active.any(axis=(0, 2)), reach),
+               _wrapped_support(active.any(axis=(0, 1)), reach)]
+        full = all(i is None for i in idx)
+        modes = ["wrap" if i is None else "constant" for i in idx]
+        if full:
+            sub = P
+        else:
+            box = np.ix_(*[np.arange(n) if i is None else i for i, n in zip(idx, P.shape, strict=True)])
+            sub = P[box]
         for ax in range(3):
-            P = correlate1d(P, self.w_e, axis=ax, mode="wrap")
-        Pi = P
+            sub = correlate1d(sub, self.w_e, axis=ax, mode=modes[ax])
+        inh = sub
         for ax in range(3):
-            Pi = correlate1d(Pi, self.w_i, axis=ax, mode="wrap")
-        P = P - Pi
+            inh = correlate1d(inh, self.w_i, axis=ax, mode=modes[ax])
+        sub = sub - inh
         g = self.cfg.pc_global_inhib
-        P = np.where(P >= g, P - g, 0.0)
-        total = P.sum()
-        if total <= 0:
-            raise FloatingPointError("pose-cell activity vanished (all cells inhibited)")
-        self.P = P / total
+        sub = np.where(sub >= g, sub - g, 0.0)
+        total = sub.sum()
+        if not total > 0:
+            raise FloatingPointError("pose-cell activity vanished (every cell below pc_global_inhib)")
+        sub /= total
+        if full:
+            self.P = sub
+        else:
+            self.P = np.zeros_like(P)
+            self.P[box] = sub
 
     def _translate_compat(self, v: float, base: float) -> None:
         N = self.N
@@ -209,24 +262,45 @@ class PoseCellNetwork:
 
     # ---------------------------------------------------------------- templates
     def on_view_template(self, vt: int, rad: float = 0.0) -> None:
+        """View template ``vt`` seen with relative rotation ``rad`` (vt_rad, panoramic front ends).
+
+        A new id stores the current best pose with decay = vt_active_decay. A known template that
+        is not among the 10 newest injects E = pc_vt_inject_energy/30 * (30 - exp(1.2 decay)) at its
+        pose, theta shifted by rad/(2 pi)*pc_dim_th; its decay grows by vt_active_decay while it
+        stays current. Every template's decay then relaxes by pc_vt_restore (floor vt_active_decay).
+        """
         c = self.cfg
         vt = int(vt)
         if vt < 0:
             raise ValueError(f"template id must be >= 0, got {vt}")
+        if not math.isfinite(rad):
+            raise ValueError(f"relative_rad must be finite, got {rad}")
+        if not c.openratslam_compat:
+            # fix 5: the C++ only updates vt_delta_pc_th when injecting, so a stale rotation
+            # leaks into delta_pc and into later actions' relative_rad
+            self.vt_delta_pc_th = rad / (2 * math.pi) * self.T
         if vt not in self.templates:
-            self.templates[vt] = [self.best[0], self.best[1], self.best[2], c.vt_active_decay]
+            self.templates[vt] = [self.best[0], self.best[1], self.best[2], c.vt_active_decay,
+                                  float(len(self.templates))]
         else:
+            t = self.templates[vt]
             size = len(self.templates)
-            guard = (size < 10 or vt < size - 10) if c.openratslam_compat else (vt < size - 10)
+            if c.openratslam_compat:
+                guard = size < 10 or vt < size - 10  # size_t wrap-round: no guard below 10 templates
+            else:
+                guard = t[4] < size - 10  # by creation order, so that skipped ids do not matter
             if guard:
-                t = self.templates[vt]
                 if vt == self.current_vt:
                     t[3] += c.vt_active_decay
-                energy = c.pc_vt_inject_energy * (30.0 - math.exp(1.2 * t[3])) / 30.0
+                # operation order as the C++, so that compat mode agrees to the last bit
+                energy = c.pc_vt_inject_energy * 1.0 / 30.0 * (30.0 - math.exp(1.2 * t[3]))
                 if energy > 0:
                     self.vt_delta_pc_th = rad / (2 * math.pi) * self.T
                     th_c = t[2] + self.vt_delta_pc_th
-                    th_c = th_c % self.T if th_c >= self.T or th_c < 0 else th_c
+                    if th_c < 0:
+                        th_c += self.T
+                    if th_c >= self.T:
+                        th_c -= self.T
                     if c.openratslam_compat:
                         ix, iy, ik = int(t[0]), int(t[1]), int(th_c)
                         if 0 <= ix < self.N and 0 <= iy < self.N and 0 <= ik < self.T:

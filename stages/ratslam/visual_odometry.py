@@ -7,6 +7,16 @@ rotation profile gives ``vrot = shift * camera_fov_deg / image_width * camera_hz
 the best difference of the translation profile gives ``vtrans = min(diff * vtrans_scaling,
 vtrans_max)``. A positive shift (the scene moved right) is a left (counter-clockwise) turn.
 The first frame only stores its profiles (OpenRatSLAM's consumers ignore its value).
+
+Both shift searches follow the C++ order (negative shifts 0..-39 first, then positive 0..39, a
+strictly smaller difference wins), so ties resolve as in OpenRatSLAM. Colour frames: the C++ sums
+the three channels (divides by 3*255).
+
+``openratslam_compat=True`` converts the per-frame measurements to rates with the nominal
+``camera_hz``, as the C++ does. The default uses the real time since the previous frame when the
+caller gives it (``dt``): the measured column shift is the rotation between the two frames that
+were compared, so when a frame is dropped or the camera is not exactly at camera_hz the C++'s
+vrot * dt is wrong by the ratio of the two intervals, and so is vtrans * dt.
 """
 
 from __future__ import annotations
@@ -21,6 +31,9 @@ SLEN = 40
 
 
 class VisualOdometryConfig(BaseModel):
+    """OpenRatSLAM's visual-odometry parameters with the C++ code defaults. The C++ window
+    defaults (x_max/y_max) read the image size before it is known; here -1 means the image edge."""
+
     model_config = ConfigDict(extra="forbid")
 
     vtrans_image_x_min: int = 0
@@ -35,44 +48,62 @@ class VisualOdometryConfig(BaseModel):
     camera_hz: float = Field(10.0, gt=0)
     vtrans_scaling: float = 100.0
     vtrans_max: float = 20.0
+    openratslam_compat: bool = False
 
 
-def profile(grey: np.ndarray, x0: int, x1: int, y0: int, y1: int) -> np.ndarray:
-    h, w = grey.shape
+def profile(img: np.ndarray, x0: int, x1: int, y0: int, y1: int) -> np.ndarray:
+    """Column means of the window [y0, y1) x [x0, x1) scaled to [0, 1] (-1 = image edge)."""
+    h, w = img.shape[:2]
     x1 = w if x1 < 0 else min(x1, w)
     y1 = h if y1 < 0 else min(y1, h)
-    win = grey[y0:y1, x0:x1]
-    if win.size == 0:
+    win = np.asarray(img[y0:y1, x0:x1], dtype=np.float64)
+    if win.shape[0] == 0 or win.shape[1] == 0:
         raise ValueError(f"empty odometry window x[{x0},{x1}) y[{y0},{y1}) in a {w}x{h} image")
-    return win.mean(axis=0) / 255.0
+    scale = 255.0
+    if win.ndim == 3:
+        win, scale = win.sum(axis=2), 255.0 * win.shape[2]
+    # integer pixel sums are exact: dividing in the C++'s order reproduces its values
+    return win.sum(axis=0) / scale / win.shape[0]
 
 
 def best_shift(cur: np.ndarray, prev: np.ndarray, slen: int = SLEN) -> tuple[int, float]:
-    """(offset, mean abs difference) minimising the difference; offset > 0: cur[k+off] ~ prev[k]."""
+    """(offset, mean abs difference) minimising the difference; offset > 0: cur[k+off] ~ prev[k].
+
+    Offsets are tried in the C++'s order, -0..-(slen-1) then 0..slen-1, and only a strictly
+    smaller difference replaces the best (np.argmin's first occurrence).
+    """
     n = cur.size
-    best_off, best = 0, math.inf
-    for off in range(min(slen, n - 1)):
-        d = float(np.abs(cur[off:] - prev[:n - off]).mean())
-        if d < best:
-            best_off, best = off, d
-        d = float(np.abs(cur[:n - off] - prev[off:]).mean())
-        if d < best:
-            best_off, best = -off, d
-    return best_off, best
+    if prev.size != n:
+        raise ValueError(f"profiles differ in length: {n} and {prev.size}")
+    offs = np.arange(min(slen, n - 1) if n > 1 else 1)
+    neg = np.array([np.abs(cur[: n - o] - prev[o:]).sum() / (n - o) for o in offs])
+    pos = np.array([np.abs(cur[o:] - prev[: n - o]).sum() / (n - o) for o in offs])
+    diffs = np.concatenate([neg, pos])
+    k = int(np.argmin(diffs))
+    off = -int(offs[k]) if k < offs.size else int(offs[k - offs.size])
+    return off, float(diffs[k])
 
 
 class VisualOdometry:
+    """OpenRatSLAM's ``VisualOdometry``: (vtrans m/s, vrot rad/s) per image from two scanlines."""
+
     def __init__(self, **params: Any) -> None:
         self.cfg = VisualOdometryConfig(**params)
         self.prev_trans: np.ndarray | None = None
         self.prev_rot: np.ndarray | None = None
 
-    def on_image(self, grey: np.ndarray) -> tuple[float, float] | None:
-        """(vtrans m/s, vrot rad/s) since the previous frame, or None on the first frame."""
+    def on_image(self, img: np.ndarray, dt: float | None = None) -> tuple[float, float] | None:
+        """(vtrans m/s, vrot rad/s) since the previous frame, or None on the first frame.
+
+        ``img`` is HxW grey or HxWxC colour (0..255); ``dt`` the seconds since the previous frame
+        (used in the default mode to turn the per-frame shift into rates; None: 1/camera_hz).
+        """
         c = self.cfg
-        g = np.asarray(grey, dtype=np.float64)
-        if g.ndim == 3:
-            g = g.mean(axis=2)
+        g = np.asarray(img)
+        if g.ndim not in (2, 3):
+            raise ValueError(f"expected a grey (HxW) or colour (HxWxC) image, got shape {g.shape}")
+        if dt is not None and not (math.isfinite(dt) and dt >= 0):
+            raise ValueError(f"dt must be finite and >= 0, got {dt}")
         pt = profile(g, c.vtrans_image_x_min, c.vtrans_image_x_max, c.vtrans_image_y_min, c.vtrans_image_y_max)
         pr = profile(g, c.vrot_image_x_min, c.vrot_image_x_max, c.vrot_image_y_min, c.vrot_image_y_max)
         if self.prev_trans is None or self.prev_trans.shape != pt.shape or self.prev_rot.shape != pr.shape:
@@ -81,6 +112,10 @@ class VisualOdometry:
         _, tdiff = best_shift(pt, self.prev_trans)
         roff, _ = best_shift(pr, self.prev_rot)
         self.prev_trans, self.prev_rot = pt, pr
-        vrot = roff * c.camera_fov_deg / g.shape[1] * c.camera_hz * math.pi / 180
-        vtrans = min(tdiff * c.vtrans_scaling, c.vtrans_max)
-        return vtrans, vrot
+        if c.openratslam_compat or not dt:
+            vrot = roff * c.camera_fov_deg / g.shape[1] * c.camera_hz * math.pi / 180.0
+            vtrans = tdiff * c.vtrans_scaling
+        else:  # per frame: rotation roff * fov / width degrees, translation tdiff * vtrans_scaling / camera_hz
+            vrot = roff * c.camera_fov_deg / g.shape[1] / dt * math.pi / 180.0
+            vtrans = tdiff * c.vtrans_scaling / (c.camera_hz * dt)
+        return min(vtrans, c.vtrans_max), vrot

@@ -1,0 +1,88 @@
+"""RatSLAM visual odometry: scanline profiles, the C++'s shift search order, scaling constants."""
+
+import math
+
+import numpy as np
+import pytest
+
+from neoslam_stream.messages import Message
+from stages.ratslam.adapters import VisualOdometryStage
+from stages.ratslam.visual_odometry import VisualOdometry, best_shift, profile
+
+
+def test_profile_is_column_mean_of_the_window_scaled_to_one():
+    img = np.zeros((6, 5), dtype=np.uint8)
+    img[2:4, 1] = 255  # rows 2-3 of column 1
+    img[0, :] = 255  # row 0 is outside the window below
+    np.testing.assert_allclose(profile(img, 0, -1, 1, 5), [0, 0.5, 0, 0, 0])  # 2 of 4 rows at 255
+
+
+def test_colour_profile_sums_channels_like_the_cpp():
+    img = np.zeros((2, 3, 3), dtype=np.uint8)
+    img[:, 0] = (30, 60, 90)  # (30 + 60 + 90) / (3 * 255)
+    assert profile(img, 0, -1, 0, -1)[0] == 180 / 765
+
+
+def test_shift_sign_and_size():
+    prof = np.sin(np.linspace(0, 12, 200))
+    off, diff = best_shift(np.roll(prof, 5), prof)  # the scene moved 5 columns to the right
+    assert off == 5 and diff < 0.05
+    off, _ = best_shift(np.roll(prof, -7), prof)
+    assert off == -7
+
+
+def test_ties_go_to_the_negative_shift_first_as_in_the_cpp():
+    prev = np.tile([0.0, 1.0], 50)
+    cur = np.roll(prev, 1)  # matches prev exactly at shift +1 and at shift -1
+    off, diff = best_shift(cur, prev)
+    assert diff == 0.0 and off == -1  # the C++ scans 0..-39 before 0..+39, strict "<"
+
+
+def test_rates_follow_openratslam_constants():
+    # 200 px wide, 50 deg field of view, 10 Hz: 4 columns = 1 deg per frame = 10 deg/s
+    img = np.tile((np.sin(np.linspace(0, 20, 200)) * 100 + 120)[None], (30, 1)).astype(np.uint8)
+    vo = VisualOdometry(camera_fov_deg=50, camera_hz=10, vtrans_scaling=100)
+    assert vo.on_image(img) is None  # the first frame has nothing to compare with
+    vtrans, vrot = vo.on_image(np.roll(img, 4, axis=1))
+    assert vrot == pytest.approx(math.radians(10.0))
+    assert vtrans < 100 * 0.05  # the same texture, shifted: small "translation"
+
+
+
+def test_translation_is_profile_difference_times_scaling():
+    rng = np.random.default_rng(0)
+    img = np.repeat(rng.integers(0, 200, (1, 120)), 2, axis=0).astype(np.uint8)  # rough texture
+    vo = VisualOdometry(vtrans_scaling=10)
+    vo.on_image(img)
+    vtrans, vrot = vo.on_image(img + 51)  # unshifted, every column +51/255 = 0.2 brighter
+    assert vtrans == pytest.approx(0.2 * 10) and vrot == 0.0
+
+
+def test_vtrans_is_capped():
+    vo = VisualOdometry(vtrans_scaling=1000, vtrans_max=20)
+    vo.on_image(np.zeros((4, 50), dtype=np.uint8))
+    vtrans, _ = vo.on_image(np.full((4, 50), 255, dtype=np.uint8))
+    assert vtrans == 20
+
+
+def test_real_frame_interval_fixes_rotation_after_a_dropped_frame():
+    img = np.tile((np.sin(np.linspace(0, 20, 200)) * 100 + 120)[None], (30, 1)).astype(np.uint8)
+    turned = np.roll(img, 4, axis=1)  # 1 deg between the two frames compared
+    for compat, degrees in ((False, 1.0), (True, 2.0)):
+        vo = VisualOdometry(camera_fov_deg=50, camera_hz=10, openratslam_compat=compat)
+        vo.on_image(img)
+        _, vrot = vo.on_image(turned, dt=0.2)  # one frame was dropped: 0.2 s between them
+        # integrated by the consumer over dt: the real 1 deg, or the C++'s 10 deg/s * 0.2 s
+        assert math.degrees(vrot * 0.2) == pytest.approx(degrees)
+
+
+def test_stage_publishes_odometry_with_image_intervals():
+    st = VisualOdometryStage(camera_fov_deg=50, camera_hz=10)
+    img = np.tile((np.sin(np.linspace(0, 20, 200)) * 100 + 120)[None], (30, 1)).astype(np.uint8)
+    frames = [img, np.roll(img, 4, axis=1)]
+    outs = [st.process("image", Message("image", i, 0.1 * i, {"image": f}))[0][1] for i, f in enumerate(frames)]
+    assert [o.type for o in outs] == ["odom", "odom"]
+    assert (outs[0]["vtrans"], outs[0]["vrot"]) == (0.0, 0.0)
+    assert outs[1]["dt"] == pytest.approx(0.1) and outs[1]["vrot"] == pytest.approx(math.radians(10.0))
+    with pytest.raises(ValueError):  # StageInputError: the window is outside a tiny frame
+        VisualOdometryStage(vtrans_image_y_min=50).process("image", Message("image", 0, 0.0, {"image": img}))

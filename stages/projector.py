@@ -15,6 +15,14 @@ the first half and ranks 256..511 in the second, never the largest values; we fo
 
 ``projection: sparse`` is Li et al.'s very sparse random projection (entries +-sqrt(1/density) with
 density 1/sqrt(n), zero otherwise), seeded, as a scipy.sparse matrix: ~1/255 of the work.
+
+``centre_window`` W > 0 (off by default, i.e. the paper) subtracts a running mean of the features
+before projecting: m_t = m_{t-1} + (f_t - m_{t-1}) / min(t, W), d = P (f_t - m_t). CNN feature
+vectors share a large common component, so without it the sLSBH codes of *unrelated* images already
+overlap in ~235 of 512 bits on Nordland (128 for independent codes) and a cross-season revisit
+(~280) hardly stands out; centred, unrelated images overlap in ~128 bits and revisits in ~180. This
+is the online form of the feature standardisation of Schubert, Neubert & Protzel (ICRA 2020). The
+running mean is the projector's state (``state_dict``).
 """
 
 from __future__ import annotations
@@ -23,8 +31,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Literal
 
+import numba
 import numpy as np
-from numba import njit
+from numba import njit, prange
 from pydantic import BaseModel, ConfigDict, Field
 
 from neoslam_stream.messages import Message
@@ -45,6 +54,8 @@ class ProjectorConfig(BaseModel):
     #: ROS 2 NeoSLAM randomMatrix.bin to load instead of generating (gaussian only)
     matrix_path: str | None = None
     sparsity: float = Field(0.25, gt=0, lt=0.5)
+    #: running-mean window W for feature centring; 0 = off (the paper)
+    centre_window: int = Field(0, ge=0)
     threads: int = Field(1, ge=1)
 
 
@@ -90,22 +101,71 @@ def sparse_matrix(n: int, seed: int, m: int = N_PROJ) -> Any:
     return sp.csr_matrix((vals, (rows, cols)), shape=(n, m), dtype=np.float32)
 
 
-@njit(cache=True)
+#: W's rows are summed in this many fixed halves (one per thread at most); a constant, not the
+#: thread count, so the bits do not depend on how many threads a deployment gives B.
+PROJECTION_CHUNKS = 2
+
+
+@njit(parallel=True, cache=True)
 def _project_rows(F, W, out):  # pragma: no cover - compiled
-    """out[r] = F[r] @ W, summing over W's rows in order for every output element.
+    """out[r] = F[r] @ W with a summation order that depends on nothing but n.
 
     BLAS rounds a matrix-vector product differently from a matrix-matrix one, so a frame's bits
-    would depend on how many frames were batched with it; here the summation order is fixed, so
-    results are identical for any batch size (and lossless runs are repeatable). One pass over W
-    serves the whole batch (micro-batching amortises the 265 MB read).
+    would depend on how many frames were batched with it; here every output element is the sum of
+    PROJECTION_CHUNKS partial sums over fixed row ranges of W, each accumulated four rows at a time
+    in order, so results are identical for any batch size and thread count (lossless runs are
+    repeatable). The product is bound by memory bandwidth (265 MB of W per pass): each block of four
+    rows of W is read once for the whole batch (micro-batching amortises it), and the two halves
+    run on two threads when B has them.
     """
     n, m = W.shape
-    for i in range(n):
-        for r in range(F.shape[0]):
-            a = F[r, i]
-            if a != 0.0:
+    b = F.shape[0]
+    nchunk = PROJECTION_CHUNKS
+    step = ((n + nchunk - 1) // nchunk + 3) // 4 * 4
+    part = np.zeros((nchunk, b, m), np.float32)
+    for c in prange(nchunk):
+        lo = c * step
+        hi = min(n, (c + 1) * step)
+        i = lo
+        while i + 4 <= hi:
+            w0 = W[i]
+            w1 = W[i + 1]
+            w2 = W[i + 2]
+            w3 = W[i + 3]
+            for r in range(b):
+                acc = part[c, r]
+                a0 = F[r, i]
+                a1 = F[r, i + 1]
+                a2 = F[r, i + 2]
+                a3 = F[r, i + 3]
                 for j in range(m):
-                    out[r, j] += a * W[i, j]
+                    acc[j] += (a0 * w0[j] + a1 * w1[j]) + (a2 * w2[j] + a3 * w3[j])
+            i += 4
+        while i < hi:
+            w0 = W[i]
+            for r in range(b):
+                acc = part[c, r]
+                a0 = F[r, i]
+                for j in range(m):
+                    acc[j] += a0 * w0[j]
+            i += 1
+    for r in range(b):
+        for j in range(m):
+            total = part[0, r, j]
+            for c in range(1, nchunk):
+                total += part[c, r, j]
+            out[r, j] = total
+
+
+@njit(cache=True)
+def _slsbh_rows(D, k, out):  # pragma: no cover - compiled
+    """sLSBH of every row of D into out (b, 2k), the same rule as :func:`slsbh`."""
+    m = D.shape[1]
+    for r in range(D.shape[0]):
+        desc = np.argsort(-D[r], kind="mergesort")[:k]
+        asc = np.argsort(D[r], kind="mergesort")[:k]
+        out[r, :k] = np.sort(desc)
+        out[r, k:] = np.sort(asc) + m
 
 
 def slsbh(d: np.ndarray, sparsity: float = 0.25) -> np.ndarray:
@@ -129,39 +189,90 @@ class BinaryProjector:
     """float32[n] -> 512 sorted bit indices of 2048 (see module docstring)."""
 
     def __init__(self, input_dim: int = 64896, projection: str = "gaussian", seed: int = 42,
-                 matrix_path: str | None = None, sparsity: float = 0.25, threads: int = 1) -> None:
+                 matrix_path: str | None = None, sparsity: float = 0.25, centre_window: int = 0,
+                 threads: int = 1) -> None:
+        if threads < 1:
+            raise ValueError(f"threads must be >= 1, got {threads}")
+        self.threads = threads
+        if centre_window < 0:
+            raise ValueError(f"centre_window must be >= 0, got {centre_window}")
         self.input_dim = input_dim
         self.projection = projection
         self.sparsity = sparsity
         self.seed = seed
+        self.centre_window = centre_window
+        self.mean = np.zeros(input_dim, dtype=np.float64)
+        self.n_seen = 0
         if projection == "gaussian":
             self.matrix = load_bin(matrix_path, input_dim) if matrix_path else gaussian_matrix(input_dim, seed)
         elif projection == "sparse":
             if matrix_path:
                 raise ValueError("matrix_path is only for the gaussian projection")
             self.matrix = sparse_matrix(input_dim, seed)
+            # P as CSR (m, n): one pass over its rows per frame is cheaper than P^T's columns
+            self._sparse_rows = self.matrix.T.tocsr()
         else:
             raise ValueError(f"unknown projection {projection!r} (gaussian or sparse)")
 
-    def project(self, feats: np.ndarray) -> np.ndarray:
-        """(n,) or (b, n) features -> (1024,) or (b, 1024) float32."""
+    def _check(self, feats: np.ndarray) -> np.ndarray:
         f = np.asarray(feats, dtype=np.float32)
-        if f.shape[-1] != self.input_dim:
-            raise ValueError(f"feature vector of length {f.shape[-1]}, projector expects {self.input_dim}")
-        if self.projection == "sparse":
-            out = (self.matrix.T @ f.T).T
-            return np.asarray(out, dtype=np.float32)
+        if f.ndim not in (1, 2) or f.shape[-1] != self.input_dim:
+            raise ValueError(f"features of shape {f.shape}, projector expects ({self.input_dim},) or (b, {self.input_dim})")
+        if not np.all(np.isfinite(f)):
+            raise ValueError("features contain NaN or infinite values")
+        return f
+
+    def centre(self, feats: np.ndarray) -> np.ndarray:
+        """Subtract the running mean m_t (updated with each row, in order) when ``centre_window`` > 0.
+
+        Frame by frame, so the result does not depend on how frames were batched.
+        """
+        f = self._check(feats)
+        if not self.centre_window:
+            return f
+        rows = np.atleast_2d(f)
+        out = np.empty_like(rows)
+        for r, row in enumerate(rows):
+            self.n_seen += 1
+            self.mean += (row - self.mean) / min(self.n_seen, self.centre_window)
+            out[r] = row - self.mean
+        return out[0] if f.ndim == 1 else out
+
+    def project(self, feats: np.ndarray) -> np.ndarray:
+        """d = P f: (n,) or (b, n) features -> (1024,) or (b, 1024) float32 (no centring)."""
+        f = self._check(feats)
         rows = np.ascontiguousarray(np.atleast_2d(f))
-        out = np.zeros((rows.shape[0], self.matrix.shape[1]), dtype=np.float32)
-        _project_rows(rows, self.matrix, out)
+        if self.projection == "sparse":
+            out = np.asarray((self._sparse_rows @ rows.T).T, dtype=np.float32)
+        else:
+            out = np.empty((rows.shape[0], self.matrix.shape[1]), dtype=np.float32)
+            numba.set_num_threads(min(self.threads, numba.config.NUMBA_NUM_THREADS))
+            _project_rows(rows, self.matrix, out)
         return out[0] if f.ndim == 1 else out
 
     def bits(self, feats: np.ndarray) -> np.ndarray:
-        return slsbh(self.project(feats), self.sparsity)
+        """One feature vector -> its sLSBH bits (centring first when enabled)."""
+        return self.bits_batch(np.atleast_2d(self._check(feats)))[0]
 
     def bits_batch(self, feats: np.ndarray) -> list[np.ndarray]:
-        d = self.project(np.atleast_2d(feats))
-        return [slsbh(row, self.sparsity) for row in d]
+        """(b, n) features -> b arrays of sorted uint16 bit indices; one pass over P."""
+        d = np.ascontiguousarray(self.project(self.centre(np.atleast_2d(feats))))
+        k = int(round(d.shape[1] * self.sparsity))
+        out = np.empty((d.shape[0], 2 * k), dtype=np.int64)
+        _slsbh_rows(d, k, out)
+        return list(out.astype(np.uint16))
+
+    def state_dict(self) -> dict[str, Any]:
+        """The running mean (the matrix is not state: it is regenerated from the seed or file)."""
+        return {"centre_window": self.centre_window, "mean": self.mean.copy(), "n_seen": self.n_seen}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        mean = np.asarray(state["mean"], dtype=np.float64)
+        if mean.shape != (self.input_dim,):
+            raise ValueError(f"saved running mean has shape {mean.shape}, expected ({self.input_dim},)")
+        self.centre_window = int(state["centre_window"])
+        self.mean = mean.copy()
+        self.n_seen = int(state["n_seen"])
 
 
 class ProjectorStage(StageAdapter):
@@ -183,8 +294,11 @@ class ProjectorStage(StageAdapter):
             threadpool_limits(self.config.threads)
         except ImportError:
             pass
-        self.projector = BinaryProjector(**self.config.model_dump(exclude={"threads"}))
-        self.projector.project(np.zeros(self.config.input_dim, np.float32))  # compile before frames come
+        self.projector = BinaryProjector(**self.config.model_dump())
+        # compile before frames come, without touching the running mean
+        self.projector.project(np.zeros(self.config.input_dim, np.float32))
+        _slsbh_rows(np.zeros((1, N_PROJ), np.float32), int(round(N_PROJ * self.config.sparsity)),
+                    np.empty((1, 2 * int(round(N_PROJ * self.config.sparsity))), np.int64))
 
     def process(self, topic: str, msg: Message) -> Output:
         return self.process_batch(topic, [msg])
@@ -193,9 +307,11 @@ class ProjectorStage(StageAdapter):
         assert self.projector is not None
         feats = []
         for m in msgs:
-            f = m["features"]
+            f = np.asarray(m["features"])
             if f.ndim != 1 or f.shape[0] != self.projector.input_dim:
                 raise StageInputError(f"features of shape {f.shape}, expected ({self.projector.input_dim},)")
+            if not np.all(np.isfinite(f)):
+                raise StageInputError(f"features of frame {m.frame} contain NaN or infinite values")
             feats.append(f)
         bits = self.projector.bits_batch(np.stack(feats))
         return [("bin_features", m.derive("bin_features", {"bits": b, "size": N_BITS}))
@@ -203,7 +319,17 @@ class ProjectorStage(StageAdapter):
 
     def info(self) -> dict[str, Any]:
         return {"projection": self.config.projection, "input_dim": self.config.input_dim,
-                "matrix": self.config.matrix_path or f"generated (seed {self.config.seed})"}
+                "matrix": self.config.matrix_path or f"generated (seed {self.config.seed})",
+                "centre_window": self.config.centre_window}
+
+    def state_dict(self) -> dict[str, Any]:
+        return self.projector.state_dict() if self.projector is not None else {}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if self.projector is None:
+            self.setup()
+        assert self.projector is not None
+        self.projector.load_state_dict(state)
 
 
 def make_stage(**params: Any) -> ProjectorStage:

@@ -22,12 +22,14 @@ kept) and ``FifoChannel(capacity)`` (producer blocks); tests check both through 
 from __future__ import annotations
 
 import json
+import random
 import socket
 import threading
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import zenoh
 
@@ -39,15 +41,44 @@ def key_for(run: str, topic: str) -> str:
     return f"{KEY_ROOT}/{run}/{topic}"
 
 
+_ISSUED_PORTS: set[int] = set()
+
+
+def _ephemeral_low() -> int:
+    try:
+        return int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 32768
+
+
 def free_port(host: str = "127.0.0.1") -> int:
-    """A TCP port that is free on ``host`` right now (the OS picks it)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind((host, 0))
-        return s.getsockname()[1]
+    """A TCP port that is free on ``host`` right now and not handed out before by this process.
+
+    Picked below the OS's ephemeral range: a port the OS chose for us (bind to 0) is an ephemeral
+    one, and any outgoing connection (a zenoh link, a browser) may take it as its local port in the
+    moment between our check and the worker's bind ("Address already in use" at start-up).
+    """
+    low = _ephemeral_low()
+    rng = random.Random()
+    candidates = range(max(1025, low - 12000), low) if low > 13025 else None
+    for _ in range(200):
+        port = rng.choice(candidates) if candidates else 0
+        if port in _ISSUED_PORTS:
+            continue
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+            try:
+                s.bind((host, port))
+            except OSError:
+                continue
+            port = s.getsockname()[1]
+        if port not in _ISSUED_PORTS:
+            _ISSUED_PORTS.add(port)
+            return port
+    raise OSError(f"no free TCP port found on {host}")
 
 
 def make_config(listen: Sequence[str] | None = None, connect: Sequence[str] | None = None,
-                shm: bool = True, mode: str = "peer") -> zenoh.Config:
+                shm: bool = False, mode: str = "peer") -> zenoh.Config:
     """A zenoh config with safe defaults: scouting off, loopback listening, optional SHM."""
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))
@@ -61,7 +92,7 @@ def make_config(listen: Sequence[str] | None = None, connect: Sequence[str] | No
 
 
 def open_session(listen: list[str] | None = None, connect: list[str] | None = None,
-                 shm: bool = True, mode: str = "peer") -> zenoh.Session:
+                 shm: bool = False, mode: str = "peer") -> zenoh.Session:
     """Open a zenoh session (peer mode, scouting off, loopback-only unless endpoints say otherwise).
 
     ``listen``/``connect`` are zenoh endpoints such as ``tcp/127.0.0.1:7447``. With both empty the
@@ -71,12 +102,24 @@ def open_session(listen: list[str] | None = None, connect: list[str] | None = No
 
 
 def wait_for_peers(session: zenoh.Session, n: int, timeout: float) -> bool:
-    """Wait until ``session`` has links to ``n`` peers (zenoh retries connections in the background)."""
+    """Wait until ``session`` has links to ``n`` other sessions, peers or routers (the supervisor is
+    a router); zenoh retries connections in the background."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
-        if len(list(session.info.peers_zid())) >= n:
+        if len(list(session.info.peers_zid())) + len(list(session.info.routers_zid())) >= n:
             return True
         time.sleep(0.05)
+    return False
+
+
+def wait_for_subscribers(publishers: Sequence[zenoh.Publisher], timeout: float) -> bool:
+    """Wait until every publisher has at least one matching subscriber (declarations travel after
+    the links are up: a message put before they arrive is dropped)."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if all(p.matching_status.matching for p in publishers):
+            return True
+        time.sleep(0.02)
     return False
 
 

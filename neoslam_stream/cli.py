@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 #: modules adding subcommands through ``register(subparsers)``
-EXTENSIONS = ["neoslam_stream.cli_data"]
+EXTENSIONS = ["neoslam_stream.cli_data", "neoslam_stream.cli_bench"]
 
 #: what `neoslam run` runs with no --config
 DEFAULT_CONFIG = "default"

@@ -32,7 +32,10 @@ class BusConfig(Strict):
     host: str = "127.0.0.1"
     listen: list[str] = Field(default_factory=list)
     connect: list[str] = Field(default_factory=list)
-    shm: bool = True
+    #: zenoh shared memory for large payloads. Off by default: at camera rates its gain is ~0.2 ms
+    #: per 260 KB message, but its first use in each process stalls the pipeline for tens of ms,
+    #: which lost the 2nd and 3rd frame of every real-time run at 30 FPS (docs/performance.md)
+    shm: bool = False
     #: input queue capacity per topic (real-time: ring, drop-oldest; lossless: FIFO, blocks).
     #: image 1 = always the newest frame; odom is tiny and needed for path integration, so deep.
     capacity: dict[str, int] = Field(default_factory=lambda: {"image": 1, "odom": 256, "groundtruth": 256,

@@ -194,6 +194,8 @@ def build_report(stats: dict[str, dict[str, Any]], final: FinalTracker,
                 "errors": st.get("errors", 0), "error_causes": st.get("error_causes", {}),
                 "counters": counters, "info": st.get("info", {}),
                 "cpu_percent": st.get("cpu_percent", 0.0), "rss_mb": st.get("rss_mb", 0.0),
+                # CPU of the whole worker process over its life (shared by the stages it hosts)
+                "cpu_mean_percent": 100.0 * st.get("cpu_s", 0.0) / active,
             }
 
     # eq. 2 generalised to processes: a worker serves its chain in sequence
@@ -262,9 +264,11 @@ class MonitorSpec:
     meta: dict[str, Any] = field(default_factory=dict)
     listen: list[str] = field(default_factory=list)
     connect: list[str] = field(default_factory=list)
-    shm: bool = True
+    shm: bool = False
     live: bool = False
     final_wait_s: float = 10.0
+    #: seconds between two lines of stats.jsonl
+    snapshot_every_s: float = 5.0
 
 
 def write_timeline_row(writer: Any, t0: float, stats: dict[str, dict[str, Any]]) -> None:
@@ -282,6 +286,19 @@ def write_timeline_row(writer: Any, t0: float, stats: dict[str, dict[str, Any]])
 
 TIMELINE_HEADER = ["t_s", "stage", "received", "processed", "tau_p50_ms", "tau_p95_ms", "queue_depth",
                    "dropped", "errors", "cpu_percent", "rss_mb"]
+
+
+#: per-stage fields kept in stats.jsonl (the stage's own ``info`` too: sizes of its state)
+SNAPSHOT_FIELDS = ("worker", "received", "processed", "errors", "tau_recent_p50_ms", "tau_recent_p95_ms",
+                   "tau_p50_ms", "cpu_percent", "rss_mb", "info")
+
+
+def stats_snapshot(t0: float, stats: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """One line of stats.jsonl: every stage's counters, recent service times, CPU, RSS and info."""
+    return {"t_s": round(time.time() - t0, 3),
+            "frames_in": stats.get("source", {}).get("frames_in", 0),
+            "stages": {name: {k: st.get(k) for k in SNAPSHOT_FIELDS if k in st}
+                       for name, st in stats.items() if name != "source"}}
 
 
 def run_monitor(spec: MonitorSpec) -> None:
@@ -315,13 +332,18 @@ def run_monitor(spec: MonitorSpec) -> None:
 
         live = Live(stats_table({}), refresh_per_second=1, transient=False)
         live.start()
-    with open(run_dir / "timeline.csv", "w", newline="") as fh:
+    last_snapshot = 0.0
+    with open(run_dir / "timeline.csv", "w", newline="") as fh, open(run_dir / "stats.jsonl", "w") as jfh:
         writer = csv.writer(fh)
         writer.writerow(TIMELINE_HEADER)
         while not stop.wait(1.0):
             snap = collector.snapshot()
             write_timeline_row(writer, t0, snap)
             fh.flush()
+            if time.time() - last_snapshot >= spec.snapshot_every_s:
+                last_snapshot = time.time()
+                jfh.write(json.dumps(stats_snapshot(t0, snap), default=_json_default) + "\n")
+                jfh.flush()
             if live is not None:
                 live.update(stats_table(snap, f"neoslam run {spec.run}"))
         # wait for every stage's final stats (sent after its flush)

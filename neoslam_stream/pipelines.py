@@ -47,6 +47,8 @@ class PipelinePlan:
     stages: list[StageSpec]
     final_topic: str
     entry_stages: list[str] = field(default_factory=list)
+    #: source topics with a consumer: the source waits for their subscribers before the first frame
+    consumed_source_topics: list[str] = field(default_factory=lambda: ["image"])
 
 
 def build_emulated(cfg: FullRunConfig) -> PipelinePlan:
@@ -87,14 +89,16 @@ def build_neoslam(cfg: FullRunConfig) -> PipelinePlan:
              StageSpec("C", "stages.neocortex:make_stage", cfg.neocortex.model_dump()),
              StageSpec("D", "stages.spatial_view:make_stage", cfg.spatial_view.model_dump())]
     _backend_specs(cfg, specs)
-    return PipelinePlan(specs, final_topic="experience_map/pose", entry_stages=["A"])
+    return PipelinePlan(specs, final_topic="experience_map/pose", entry_stages=["A"],
+                        consumed_source_topics=["image", "odom"])
 
 
 def build_ratslam(cfg: FullRunConfig) -> PipelinePlan:
     """The baseline: RatSLAM's local-view cells instead of NeoSLAM's front end."""
     specs = [StageSpec("local_view", "stages.ratslam.adapters:make_local_view_stage", cfg.local_view.model_dump())]
     _backend_specs(cfg, specs)
-    return PipelinePlan(specs, final_topic="experience_map/pose", entry_stages=["local_view"])
+    return PipelinePlan(specs, final_topic="experience_map/pose", entry_stages=["local_view"],
+                        consumed_source_topics=["image", "odom"])
 
 
 RATSLAM_BRANCH_TOPICS = ("visual_template", "pose_cells/action", "experience_map/pose", "experience_map/map")

@@ -134,7 +134,9 @@ class Supervisor:
             run_dir=str(self.run_dir), lossless=self.lossless, listen=listen, connect=connect,
             shm=self.cfg.bus.shm, pacing=pacing, rate=src.rate, rate_multiplier=src.rate_multiplier,
             max_frames=src.max_frames, duration=src.duration, window=self.cfg.bus.window,
-            final_topic=self.plan.final_topic, progress=self.cfg.run.live, start_frame=start_frame)
+            final_topic=self.plan.final_topic, progress=self.cfg.run.live, start_frame=start_frame,
+            expected_peers=len(self.order) - 1,
+            wait_topics=list(getattr(self.plan, "consumed_source_topics", ["image"])))
 
     def monitor_spec(self) -> MonitorSpec:
         listen, connect = self._links("monitor")

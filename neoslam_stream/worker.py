@@ -43,7 +43,7 @@ class WorkerSpec:
     lossless: bool
     listen: list[str] = field(default_factory=list)
     connect: list[str] = field(default_factory=list)
-    shm: bool = True
+    shm: bool = False
     #: input ring/FIFO capacity per external topic; others get ``default_capacity``.
     capacities: dict[str, int] = field(default_factory=dict)
     default_capacity: int = 2
@@ -67,6 +67,8 @@ class ServiceStats:
     """Per-stage service and queueing times (seconds) with bounded memory."""
 
     MAX_SAMPLES = 200_000
+    #: the recent percentiles cover the newest this many frames (the scaling curve's step)
+    RECENT = 1000
 
     def __init__(self) -> None:
         self.tau: list[float] = []
@@ -88,11 +90,15 @@ class ServiceStats:
     def summary(self) -> dict[str, float]:
         if not self.tau:
             return {"tau_mean_ms": 0.0, "tau_p50_ms": 0.0, "tau_p95_ms": 0.0, "tau_max_ms": 0.0,
+                    "tau_recent_p50_ms": 0.0, "tau_recent_p95_ms": 0.0,
                     "queue_p50_ms": 0.0, "queue_p95_ms": 0.0}
         t = np.asarray(self.tau) * 1e3
         w = np.asarray(self.wait) * 1e3
+        recent = t[-self.RECENT:]
         return {"tau_mean_ms": self.tau_sum / self.n * 1e3,
                 "tau_p50_ms": float(np.percentile(t, 50)), "tau_p95_ms": float(np.percentile(t, 95)),
+                "tau_recent_p50_ms": float(np.percentile(recent, 50)),
+                "tau_recent_p95_ms": float(np.percentile(recent, 95)),
                 "tau_max_ms": self.tau_max * 1e3,
                 "queue_p50_ms": float(np.percentile(w, 50)), "queue_p95_ms": float(np.percentile(w, 95))}
 
@@ -320,6 +326,8 @@ class Worker:
             self._proc.cpu_percent(None)
         cpu = self._proc.cpu_percent(None)
         rss = self._proc.memory_info().rss / 2**20
+        ct = self._proc.cpu_times()
+        cpu_s = ct.user + ct.system
         depth = self.queue.depth() if self.queue else {}
         qstats = self.queue.stats if self.queue else {}
         out = []
@@ -340,7 +348,7 @@ class Worker:
                     "error_causes": dict(st.error_causes), "counters": dict(st.adapter.counters),
                     "inputs": inputs, "outputs": list(st.outputs),
                     "consumes": list(st.inputs), "last_frame": st.last_frame,
-                    "info": info, "cpu_percent": cpu, "rss_mb": rss, "final": final,
+                    "info": info, "cpu_percent": cpu, "cpu_s": cpu_s, "rss_mb": rss, "final": final,
                     "n_stages_in_worker": len(self.stages), **st.times.summary()}
             out.append(Message("stats", 0, now, data))
         return out

@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from ..bus import Bus, key_for, open_session
+from ..bus import Bus, key_for, open_session, wait_for_peers, wait_for_subscribers
 from ..evaluation import write_tum
 from ..messages import Message, decode, encode
 from ..stage import load_factory
@@ -61,7 +61,7 @@ class SourceRunSpec:
     lossless: bool
     listen: list[str] = field(default_factory=list)
     connect: list[str] = field(default_factory=list)
-    shm: bool = True
+    shm: bool = False
     pacing: str = "fixed"  # fixed | recorded | asap
     rate: float | None = 10.0
     rate_multiplier: float = 1.0
@@ -76,6 +76,12 @@ class SourceRunSpec:
     #: frames below this number are skipped (resume from a checkpoint)
     start_frame: int = 0
     stats_hz: float = 2.0
+    #: processes (workers, monitor, supervisor) to be linked to before the first frame
+    expected_peers: int = 0
+    #: topics that must have a matching subscriber before the first frame (the entry stages')
+    wait_topics: list[str] = field(default_factory=lambda: ["image"])
+    #: pause between "everyone is linked" and the first frame
+    settle_s: float = 1.0
 
 
 class _Progress:
@@ -156,6 +162,15 @@ def run_source(spec: SourceRunSpec) -> None:
     bus.subscribe_callback(key_for(spec.run, "control"), _on_control)
     for t in ("image", "odom", "groundtruth"):
         bus.publisher(t)
+    # a frame put before the links are up, or before the consumers' subscriptions have travelled
+    # to us, is silently lost: wait for both (bounded, so a misconfigured run still starts)
+    if not wait_for_peers(session, spec.expected_peers, timeout=20.0):
+        log.warning("linked to fewer than %d processes after 20 s; starting anyway", spec.expected_peers)
+    if not wait_for_subscribers([bus.publisher(t) for t in spec.wait_topics], timeout=20.0):
+        log.warning("no subscriber matched %s after 20 s; starting anyway", spec.wait_topics)
+    # workers announce readiness, then finish starting (first stats, garbage collection of their
+    # set-up): give them a moment so that the first frames do not meet a busy machine
+    time.sleep(spec.settle_s)
     token = session.liveliness().declare_token(key_for(spec.run, "alive/source"))
 
     counts = {"image": 0, "odom": 0, "groundtruth": 0}
@@ -185,7 +200,10 @@ def run_source(spec: SourceRunSpec) -> None:
         bar.start()
         task = bar.add_task("frames", total=total)
 
-    t0 = time.monotonic()
+    # the clock starts when the first frame is ready: a source's first frame can be slow (loading,
+    # building caches), and a schedule started earlier would make it catch up in a burst, which a
+    # real-time ring of capacity 1 turns into lost frames
+    t0: float | None = None
     stamp0: float | None = None
     n_sent = 0
     # what the source published, for evaluation: ground truth and dead-reckoned wheel odometry
@@ -200,6 +218,8 @@ def run_source(spec: SourceRunSpec) -> None:
                 continue
             if spec.max_frames is not None and n_sent >= spec.max_frames:
                 break
+            if t0 is None:
+                t0 = time.monotonic()
             if spec.duration is not None and time.monotonic() - t0 >= spec.duration:
                 break
             # pacing

@@ -211,7 +211,7 @@ def build_report(stats: dict[str, dict[str, Any]], final: FinalTracker,
     frames_out = len(final.frames)
     expected = max(0, frames_in - strided)
     loss = 1.0 - frames_out / expected if expected > 0 else 0.0
-    errors = sum(r.get("errors", 0) for r in stage_rows.values())
+    errors = sum(r.get("errors", 0) for r in stage_rows.values()) + int(src.get("errors", 0))
     report = {
         **meta,
         "f_in": f_in, "frames_in": frames_in, "frames_out": frames_out, "frames_strided": strided,
@@ -223,6 +223,7 @@ def build_report(stats: dict[str, dict[str, Any]], final: FinalTracker,
         "latency_p50_ms": _pct(final.latencies, 50) * 1e3,
         "latency_p95_ms": _pct(final.latencies, 95) * 1e3,
         "errors": errors, "final_messages": final.messages,
+        "source_errors": int(src.get("errors", 0)), "source_error_causes": src.get("error_causes", {}),
         "source": src.get("info", {}),
         "stages": stage_rows,
     }
@@ -240,7 +241,7 @@ def stats_table(stats: dict[str, dict[str, Any]], title: str = "neoslam") -> Any
     now = time.time()
     src = stats.get("source")
     if src is not None:
-        table.add_row("source", "", str(src.get("frames_in", 0)), "", "", "", "", "", "", "", "")
+        table.add_row("source", "", str(src.get("frames_in", 0)), "", "", "", "", "", str(src.get("errors", 0)), "", "")
     for name, st in sorted(stats.items()):
         if name == "source":
             continue

@@ -305,9 +305,16 @@ class Worker:
             batch += self.queue.get_more(topic, self.spec.max_batch - 1)
         msgs: list[Message] = []
         recv: list[float] = []
+        expected = self.stages[first].to_adapter.get(topic, topic)
         for p, r in batch:
             try:
-                msgs.append(decode(p))
+                msg = decode(p)
+                # a valid message on the wrong topic (types name their topic; emulated/1, emulated/2
+                # ... carry the type "emulated")
+                if msg.type.split("/")[0] != expected.split("/")[0]:
+                    raise MessageError(f"message of type {msg.type!r} on topic {topic!r} "
+                                       f"(expects {expected!r})")
+                msgs.append(msg)
                 recv.append(r)
             except MessageError as exc:
                 self.stages[first].received += 1

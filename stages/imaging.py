@@ -10,11 +10,11 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+# MAX_PIXELS: frames larger than this are refused (a corrupt header can claim gigapixels)
+from neoslam_stream.imageinfo import MAX_PIXELS, too_large, truncation
 from neoslam_stream.messages import Message
 from neoslam_stream.stage import StageInputError
 
-#: Refuse frames larger than this many pixels (a corrupt header can claim gigapixels).
-MAX_PIXELS = 8192 * 8192
 #: ITU-R BT.601 luma weights, the ones OpenCV's and the ROS 2 NeoSLAM's grey conversion use.
 _LUMA = np.array([0.299, 0.587, 0.114], dtype=np.float32)
 
@@ -66,6 +66,13 @@ def decode_rgb(msg: Message) -> np.ndarray:
     buf = np.frombuffer(comp, dtype=np.uint8)
     if buf.size == 0:
         raise StageInputError("compressed image is empty")
+    cut = truncation(comp)
+    if cut is not None:
+        raise StageInputError(f"compressed image of {buf.size} bytes: {cut}")
+    big = too_large(comp)
+    if big is not None:  # refuse before the decoder allocates the whole frame
+        raise StageInputError(f"compressed image header says {big[0]}x{big[1]} pixels, "
+                              f"beyond the limit of {MAX_PIXELS}")
     try:
         bgr = cv2.imdecode(buf, cv2.IMREAD_COLOR)
     except cv2.error as exc:

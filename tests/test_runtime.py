@@ -96,10 +96,16 @@ def _attach(tmp_path: Path, timeout: float = 240.0):
     return session, ep["run"]
 
 
-def _wait_stats(session, run_id: str, stage: str, timeout: float = 240.0) -> dict:
+def _wait_stats(session, run_id: str, stage: str, timeout: float = 240.0, until=None) -> dict:
+    """The first stats of ``stage`` (for which ``until(stats)`` holds, when given)."""
     got = {}
-    sub = session.declare_subscriber(key_for(run_id, f"stats/{stage}"),
-                                     lambda s: got.update(decode(s.payload.to_bytes()).data))
+
+    def on(sample):
+        data = decode(sample.payload.to_bytes()).data
+        if until is None or until(data):
+            got.update(data)
+
+    sub = session.declare_subscriber(key_for(run_id, f"stats/{stage}"), on)
     deadline = time.monotonic() + timeout
     while not got and time.monotonic() < deadline:
         time.sleep(0.05)
@@ -143,7 +149,7 @@ def test_sigkilled_worker_is_restarted_and_run_completes(tmp_path):
     proc = _start_run(tmp_path, frames=frames, rate=20.0, taus=[5.0, 5.0, 5.0], mode="realtime")
     session, run_id = _attach(tmp_path)
     try:
-        _wait_stats(session, run_id, "source")  # the run is under way
+        _wait_stats(session, run_id, "source", until=lambda st: st.get("frames_in", 0) > 0)  # under way
         st = _wait_stats(session, run_id, "stage2")
         time.sleep(1.0)
         os.kill(st["pid"], signal.SIGKILL)
@@ -163,7 +169,7 @@ def test_sigint_stops_everything_and_writes_the_report(tmp_path):
     proc = _start_run(tmp_path, frames=100000, rate=20.0, taus=[5.0, 5.0], mode="realtime")
     session, run_id = _attach(tmp_path)
     try:
-        _wait_stats(session, run_id, "stage2")
+        _wait_stats(session, run_id, "stage2", until=lambda st: st.get("processed", 0) > 0)
     finally:
         session.close()
     children = psutil.Process(proc.pid).children(recursive=True)

@@ -47,6 +47,21 @@ class Source:
     def __iter__(self) -> Iterator[SourceFrame]:
         raise NotImplementedError
 
+    @property
+    def errors(self) -> dict[str, int]:
+        """Records this source skipped, counted per cause (reported as the source's errors)."""
+        if "_errors" not in self.__dict__:
+            self.__dict__["_errors"] = {}
+        return self.__dict__["_errors"]
+
+    def record_error(self, cause: str) -> None:
+        """Count a skipped record (an unreadable odometry row, an undecodable sample...)."""
+        import logging
+
+        if cause not in self.errors:
+            logging.getLogger(type(self).__module__).warning("%s: %s", type(self).__name__, cause)
+        self.errors[cause] = self.errors.get(cause, 0) + 1
+
     def info(self) -> dict[str, Any]:
         """Facts about the source for report.json (kind, path, size, rate...)."""
         return {"kind": type(self).__name__}

@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 
 from ..evaluation import read_tum
+from ..imageinfo import too_large, truncation
 from .bag import interpolate_pose
 from .base import Source, SourceFrame
 
@@ -67,17 +68,37 @@ class ImageFolderSource(Source):
 
     def __iter__(self) -> Iterator[SourceFrame]:
         prev_t: float | None = None
+        prev_row: np.ndarray | None = None
         for i, f in enumerate(self.files):
-            t = float(self.odo[i, 0]) if self.odo is not None and i < len(self.odo) else i / self.rate_hz
-            img = cv2.imread(str(f), cv2.IMREAD_COLOR)
+            t = i / self.rate_hz if prev_t is None else prev_t + 1.0 / self.rate_hz
             odom = gt = None
-            if self.odo is not None:
-                odom = odometry_between(self.odo, prev_t if prev_t is not None else t, t)
+            if self.odo is not None and i < len(self.odo):
+                row = self.odo[i]
+                if not np.all(np.isfinite(row)):
+                    self.record_error(f"odometry row {i} holds NaN or infinite values: skipped")
+                elif prev_row is not None and row[0] <= prev_row[0]:
+                    self.record_error(f"odometry row {i}: stamp {row[0]:.6f} is not after the previous "
+                                      f"{prev_row[0]:.6f}: skipped")
+                else:
+                    t = float(row[0])
+                    # the motion since the previous good pose (none for the first frame)
+                    odom = odometry_between(np.stack([prev_row, row]), float(prev_row[0]), t) \
+                        if prev_row is not None else (0.0, 0.0, 0.0)
+                    prev_row = row
+            raw = f.read_bytes()
+            # a header claiming gigapixels is passed on undecoded: the stage refuses it with its
+            # cause instead of the decoder allocating the whole frame here
+            img = None
+            if raw and not too_large(raw) and truncation(raw) is None:
+                try:
+                    img = cv2.imdecode(np.frombuffer(raw, np.uint8), cv2.IMREAD_COLOR)
+                except cv2.error:
+                    img = None
             if self.gt is not None:
                 gt = interpolate_pose(self.gt, t, self.groundtruth_max_gap_s)
             prev_t = t
             if img is None:  # unreadable file: pass the bytes on, the stage reports the fault
-                yield SourceFrame(i, t, compressed=f.read_bytes(), format=f.suffix.lstrip("."), odom=odom,
+                yield SourceFrame(i, t, compressed=raw, format=f.suffix.lstrip("."), odom=odom,
                                   groundtruth=gt)
                 continue
             yield SourceFrame(i, t, image=np.ascontiguousarray(img[:, :, ::-1]), encoding="rgb8", odom=odom,

@@ -24,6 +24,7 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -32,7 +33,7 @@ import numpy as np
 
 from ..bus import Bus, key_for, open_session, wait_for_peers, wait_for_subscribers
 from ..evaluation import write_tum
-from ..messages import Message, decode, encode
+from ..messages import Message, MessageError, decode, encode
 from ..stage import load_factory
 from .base import Source
 
@@ -136,6 +137,22 @@ def frame_messages(sf: Any, published_at: float) -> list[tuple[str, Message]]:
     return out
 
 
+def _guarded(source: Any, record_error: Any) -> Iterator[Any]:
+    """Iterate ``source``; an exception while reading (a truncated bag, a corrupt container) is
+    recorded as the source's error and ends the stream, so the frames read so far are processed
+    and the run ends normally."""
+    it = iter(source)
+    while True:
+        try:
+            sf = next(it)
+        except StopIteration:
+            return
+        except Exception as exc:
+            record_error(f"reading stopped: {type(exc).__name__}: {exc}")
+            return
+        yield sf
+
+
 def run_source(spec: SourceRunSpec) -> None:
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s source %(levelname)s %(message)s")
     stop = threading.Event()
@@ -181,8 +198,27 @@ def run_source(spec: SourceRunSpec) -> None:
     info = source.info()
     next_stats = time.monotonic()
 
+    # the source's own faults (unreadable records, a truncated file, a frame that cannot be
+    # encoded): counted per cause, logged once, reported like a stage's errors
+    errors: dict[str, int] = {}
+
+    def record_error(cause: str) -> None:
+        cause = cause[:300]
+        if cause not in errors:
+            log.warning("source: %s", cause)
+        errors[cause] = errors.get(cause, 0) + 1
+
     def publish_stats(final: bool = False) -> None:
+        nonlocal info
+        try:
+            info = source.info()
+        except Exception as exc:  # diagnostics only
+            info = {"info_error": str(exc)}
+        causes = dict(errors)
+        for cause, n in dict(getattr(source, "errors", {}) or {}).items():  # records the source skipped
+            causes[cause] = causes.get(cause, 0) + int(n)
         data = {"stage": "source", "frames_in": counts["image"], "odom": counts["odom"],
+                "errors": sum(causes.values()), "error_causes": causes,
                 "groundtruth": counts["groundtruth"], "first_publish": first_pub,
                 "last_publish": last_pub, "last_frame": last_frame, "done": done or final,
                 "final": final, "info": info, "time": time.time(), "pacing": spec.pacing,
@@ -211,7 +247,7 @@ def run_source(spec: SourceRunSpec) -> None:
     odo_rows: list[tuple[float, float, float, float]] = []
     ox = oy = oth = 0.0
     try:
-        for sf in source:
+        for sf in _guarded(source, record_error):
             if stop.is_set():
                 break
             if sf.frame < spec.start_frame:
@@ -243,12 +279,19 @@ def run_source(spec: SourceRunSpec) -> None:
                     if stop.is_set():
                         break
             now = time.time()
+            sent: set[str] = set()
             for topic, msg in frame_messages(sf, now):
-                bus.put(topic, encode(msg))
+                try:
+                    payload = encode(msg)
+                except (MessageError, ValueError, TypeError) as exc:  # e.g. NaN odometry, a bad stamp
+                    record_error(f"{topic} of frame {sf.frame} not published: {type(exc).__name__}: {exc}")
+                    continue
+                bus.put(topic, payload)
                 counts[topic] += 1
-            if sf.groundtruth is not None:
+                sent.add(topic)
+            if sf.groundtruth is not None and "groundtruth" in sent:
                 gt_rows.append((sf.stamp, *sf.groundtruth))
-            if sf.odom is not None:
+            if sf.odom is not None and "odom" in sent:
                 vt, vr, dt = sf.odom
                 oth += vr * dt
                 ox += vt * dt * math.cos(oth)

@@ -51,7 +51,6 @@ class _Live(Source):
         self._cond = threading.Condition()
         self._closed = False
         self.timeout_s = timeout_s
-        self.errors: dict[str, int] = {}
         self.received = 0
         self.dropped = 0
 
@@ -68,9 +67,7 @@ class _Live(Source):
             self._cond.notify_all()
 
     def _error(self, cause: str) -> None:
-        if cause not in self.errors:
-            log.warning("zenoh source: skipped a sample: %s", cause)
-        self.errors[cause] = self.errors.get(cause, 0) + 1
+        self.record_error(f"skipped a sample: {cause}")
 
     def _next(self) -> Any | None:
         deadline = None if self.timeout_s is None else time.monotonic() + self.timeout_s

@@ -49,6 +49,7 @@ class PoseCellsStage(StageAdapter):
         self.templates_waiting: OrderedDict[int, Message] = OrderedDict()
         self.last_template_frame = -1
         self.max_odom_frame = -1
+        self.last_odom_frame = -1
         self.actions = {0: 0, 1: 0, 2: 0, 3: 0}
         self.prev_odom_stamp: float | None = None
 
@@ -59,6 +60,7 @@ class PoseCellsStage(StageAdapter):
         else:  # OpenRatSLAM's rule: the time since the previous odometry (the first one moves nothing)
             dt = 0.0 if self.prev_odom_stamp is None else msg.stamp - self.prev_odom_stamp
         self.prev_odom_stamp = msg.stamp
+        self.last_odom_frame = max(self.last_odom_frame, msg.frame)
         if not (math.isfinite(dt) and dt >= 0):
             raise StageInputError(f"odometry dt {dt} is not a finite non-negative number")
         self.pc.on_odo(vtrans, vrot, dt)
@@ -100,6 +102,15 @@ class PoseCellsStage(StageAdapter):
 
     def process(self, topic: str, msg: Message) -> Output:
         if topic == "odom":
+            for k in ("vtrans", "vrot"):
+                v = msg.data.get(k)
+                if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                    raise StageInputError(f"odometry field {k!r} of frame {msg.frame} is not a finite number")
+            if msg.frame in self.pending or msg.frame <= self.last_odom_frame:
+                # odometry is integrated in frame order exactly once: a repeated or older frame
+                # would count the same motion twice or move back in time
+                raise StageInputError(f"odometry of frame {msg.frame} is out of order (frame "
+                                      f"{max(self.last_odom_frame, self.max_odom_frame)} already seen)")
             if msg.frame <= self.last_template_frame:  # late: its template has been applied already
                 return self._odo(msg)
             self.pending[msg.frame] = msg
@@ -107,8 +118,12 @@ class PoseCellsStage(StageAdapter):
                 self.pending = OrderedDict(sorted(self.pending.items()))
             self.max_odom_frame = max(self.max_odom_frame, msg.frame)
         else:
-            if int(msg["id"]) < 0:
-                raise StageInputError(f"template id {msg['id']} is negative")
+            vt = int(msg["id"])
+            if vt < 0:
+                raise StageInputError(f"template id {vt} is negative")
+            if msg.frame <= self.last_template_frame or msg.frame in self.templates_waiting:
+                raise StageInputError(f"template of frame {msg.frame} is out of order (frame "
+                                      f"{self.last_template_frame} already applied)")
             self.templates_waiting[msg.frame] = msg
             self.templates_waiting = OrderedDict(sorted(self.templates_waiting.items()))
         return self._drain()
@@ -125,7 +140,8 @@ class PoseCellsStage(StageAdapter):
         from neoslam_stream.messages import encode
 
         return {"pc": self.pc.state_dict(), "last_template_frame": self.last_template_frame,
-                "max_odom_frame": self.max_odom_frame,
+                "max_odom_frame": self.max_odom_frame, "last_odom_frame": self.last_odom_frame,
+                "actions": {str(k): v for k, v in self.actions.items()},
                 "prev_odom_stamp": -1.0 if self.prev_odom_stamp is None else self.prev_odom_stamp,
                 "pending": [np.frombuffer(encode(m), dtype=np.uint8) for m in self.pending.values()],
                 "templates_waiting": [np.frombuffer(encode(m), dtype=np.uint8)
@@ -137,6 +153,8 @@ class PoseCellsStage(StageAdapter):
         self.pc.load_state_dict(st["pc"])
         self.last_template_frame = int(st["last_template_frame"])
         self.max_odom_frame = int(st["max_odom_frame"])
+        self.last_odom_frame = int(st.get("last_odom_frame", -1))
+        self.actions = {int(k): int(v) for k, v in st.get("actions", {}).items()} or self.actions
         stamp = float(st.get("prev_odom_stamp", -1.0))
         self.prev_odom_stamp = None if stamp < 0 else stamp
         self.pending, self.templates_waiting = OrderedDict(), OrderedDict()

@@ -84,3 +84,57 @@ def latest_stage_state(checkpoint_dir: str | Path, stage: str) -> Path | None:
         if f.exists():
             return f
     return None
+
+
+# ------------------------------------------------------------------------------ map files
+MAP_FORMAT = "neoslam-map"
+MAP_VERSION = 1
+
+
+def run_states(run_dir: str | Path) -> tuple[dict[str, dict[str, Any]], str]:
+    """Every stage's newest state in a run folder: the end-of-run states (``state/``), else the
+    newest complete checkpoint cut. Returns (stage -> state, where it came from)."""
+    run_dir = Path(run_dir)
+    final = run_dir / "state"
+    if final.is_dir() and any(final.glob("*.state")):
+        return {p.stem: load_state_file(p) for p in sorted(final.glob("*.state"))}, str(final)
+    root = run_dir / "checkpoint"
+    if root.is_dir():
+        for d in sorted((p for p in root.iterdir() if p.is_dir() and p.name.isdigit()), reverse=True):
+            files = sorted(d.glob("*.state"))
+            if files:
+                return {p.stem: load_state_file(p) for p in files}, str(d)
+    raise FileNotFoundError(f"{run_dir} holds no saved state (neither state/ nor checkpoint/)")
+
+
+def export_map(run_dir: str | Path, out: str | Path) -> dict[str, Any]:
+    """Pack a run's learned state (templates, TM connections, intervals, pose cells, experience
+    map) into one portable file (msgpack, no pickle) for ``neoslam run --map``."""
+    import json
+
+    states, origin = run_states(run_dir)
+    cfg_path = Path(run_dir) / "config.yaml"
+    meta = {"format": MAP_FORMAT, "version": MAP_VERSION, "from_run": str(Path(run_dir).resolve()),
+            "from_states": origin, "config_yaml": cfg_path.read_text() if cfg_path.exists() else ""}
+    report = Path(run_dir) / "report.json"
+    if report.exists():
+        try:
+            rep = json.loads(report.read_text())
+            meta["pipeline"] = rep.get("pipeline")
+            meta["frames"] = rep.get("frames_out")
+        except (OSError, ValueError):
+            pass
+    save_state_file(out, {**meta, "stages": states})
+    return {**meta, "stages": sorted(states)}
+
+
+def load_map_file(path: str | Path) -> dict[str, Any]:
+    """A map file written by :func:`export_map`, checked for its format and version."""
+    data = load_state_file(path)
+    if data.get("format") != MAP_FORMAT:
+        raise ValueError(f"{path} is not a neoslam map file (format {data.get('format')!r})")
+    if data.get("version") != MAP_VERSION:
+        raise ValueError(f"{path}: map version {data.get('version')!r}, this build reads {MAP_VERSION}")
+    if not isinstance(data.get("stages"), dict):
+        raise ValueError(f"{path}: no stage states in the map file")
+    return data

@@ -87,7 +87,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     cfg = _load(args)
     try:
-        result = run(cfg, args.out, getattr(args, "resume", None))
+        result = run(cfg, args.out, getattr(args, "resume", None), getattr(args, "map", None))
     except RunError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
@@ -98,7 +98,9 @@ def cmd_run(args: argparse.Namespace) -> int:
 
         ev = evaluate_run(run_dir)
         print_evaluation(ev)
-    return 130 if result.interrupted else 0
+    if result.interrupted:  # the shell convention: 128 + the signal (130 for Ctrl-C, 143 for SIGTERM)
+        return 128 + (result.signal or 2)
+    return 0
 
 
 def print_evaluation(ev: dict[str, Any]) -> None:
@@ -189,6 +191,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_run_options(p_run)
     p_run.add_argument("--checkpoint-every", type=int, help="save every stage's state every N frames")
     p_run.add_argument("--resume", metavar="RUN_DIR", help="resume from the last checkpoint of RUN_DIR")
+    p_run.add_argument("--map", metavar="MAP_FILE",
+                       help="start from a map exported by `neoslam map export` (long-term deployment)")
     p_run.add_argument("--pipeline", help="pipeline name (neoslam, ratslam, emulated)")
     p_run.set_defaults(func=cmd_run)
 

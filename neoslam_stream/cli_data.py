@@ -53,7 +53,49 @@ def cmd_dataset_synthetic(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_map_export(args: argparse.Namespace) -> int:
+    from .checkpoint import export_map
+
+    out = Path(args.out) if args.out else Path(args.run_dir) / "map.neoslam"
+    try:
+        meta = export_map(args.run_dir, out)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    print(f"wrote {out} ({out.stat().st_size / 2**20:.1f} MB): stages {', '.join(meta['stages'])} "
+          f"from {meta['from_states']}")
+    return 0
+
+
+def cmd_map_info(args: argparse.Namespace) -> int:
+    from .checkpoint import load_map_file
+
+    try:
+        data = load_map_file(args.map_file)
+    except (OSError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    print(f"{args.map_file}: {data['format']} v{data['version']}, pipeline {data.get('pipeline')}, "
+          f"{data.get('frames')} frames, from {data.get('from_run')}")
+    for name, state in sorted(data["stages"].items()):
+        print(f"  {name}: {', '.join(sorted(state))}")
+    return 0
+
+
 def register(sub: argparse._SubParsersAction, bench_sub: argparse._SubParsersAction) -> None:
+    m = sub.add_parser("map", help="export / inspect maps for long-term deployment",
+                       description="A map is every stage's learned state (templates, TM connections, "
+                                   "intervals, pose cells, experience map) in one file; "
+                                   "`neoslam run --map FILE` starts a new session on it.")
+    msub = m.add_subparsers(dest="map_command", metavar="ACTION")
+    me = msub.add_parser("export", help="pack a finished (or checkpointed) run's state into a map file")
+    me.add_argument("run_dir")
+    me.add_argument("--out", help="map file (default RUN_DIR/map.neoslam)")
+    me.set_defaults(func=cmd_map_export)
+    mi = msub.add_parser("info", help="what a map file holds")
+    mi.add_argument("map_file")
+    mi.set_defaults(func=cmd_map_info)
+    m.set_defaults(func=lambda a: (m.print_help(), 2)[1])
     p = sub.add_parser("evaluate", help="trajectory / map error of a run folder against ground truth",
                        description="Recompute evaluation.json and map.png of a run folder.")
     p.add_argument("run_dir")

@@ -75,6 +75,11 @@ class StageAdapter:
     def load_state_dict(self, state: dict[str, Any]) -> None:
         pass
 
+    def new_session(self) -> None:
+        """Called after an imported map was loaded (``neoslam run --map``): forget what belongs to
+        the previous data stream (frame numbers, waiting buffers, per-run outputs) and keep what
+        was learned (templates, connections, experiences). Default: nothing to forget."""
+
     def close(self) -> None:
         pass
 

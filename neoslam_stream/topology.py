@@ -51,6 +51,8 @@ class RunResult:
     report: dict[str, Any]
     interrupted: bool = False
     restarts: dict[str, int] = field(default_factory=dict)
+    #: the signal that interrupted the run (SIGINT, SIGTERM), if any
+    signal: int | None = None
 
 
 def group_workers(plan: PipelinePlan, topology: str) -> dict[str, list]:
@@ -70,7 +72,8 @@ def make_run_dir(cfg: Any, out: str | Path | None) -> tuple[str, Path]:
 
 
 class Supervisor:
-    def __init__(self, cfg: Any, run_dir: str | Path | None = None, resume: str | Path | None = None) -> None:
+    def __init__(self, cfg: Any, run_dir: str | Path | None = None, resume: str | Path | None = None,
+                 map_path: str | Path | None = None) -> None:
         self.cfg = cfg
         self.plan = build_plan(cfg)
         self.name, self.run_dir = make_run_dir(cfg, run_dir)
@@ -81,6 +84,9 @@ class Supervisor:
         self.procs: dict[str, Any] = {}
         self.restarts: dict[str, int] = {}
         self.interrupts = 0
+        self.last_signal: int | None = None
+        self.restart_events: list[dict[str, Any]] = []
+        self.t_start = time.time()
         self.resume = Path(resume) if resume else None
         self.resume_cut: int | None = None
         if self.resume is not None:
@@ -89,6 +95,22 @@ class Supervisor:
             if self.resume_cut is None:
                 raise RunError(f"no complete checkpoint in {self.resume / 'checkpoint'} "
                                f"(every stage of {names} must have saved the same cut)")
+        self.map_path = ""
+        if map_path is not None:
+            if self.resume is not None:
+                raise RunError("--map and --resume exclude each other (a resumed run has its own state)")
+            from .checkpoint import load_map_file
+
+            try:
+                stored = load_map_file(map_path)["stages"]
+            except (OSError, ValueError) as exc:
+                raise RunError(f"cannot use map {map_path}: {exc}") from None
+            names = [s.name for s in self.plan.stages]
+            if not set(stored) & set(names):
+                raise RunError(f"map {map_path} holds stages {sorted(stored)}, none of this pipeline's {names}")
+            for n in sorted(set(stored) - set(names)):
+                log.warning("map %s: stage %s is not in this pipeline; ignored", map_path, n)
+            self.map_path = str(Path(map_path).resolve())
         host = cfg.bus.host
         order = ["supervisor", "monitor", *self.groups, "source"]
         self.endpoints = {n: f"tcp/{host}:{free_port(host)}" for n in order}
@@ -117,7 +139,7 @@ class Supervisor:
             threads=max(s.threads for s in specs) if wname != "monolithic" else max(
                 1, max(s.threads for s in specs)),
             max_batch=self.cfg.run.max_batch if self.lossless else 1, log_level=self.cfg.run.log_level,
-            resume_states=resume_states, expected_peers=self.order.index(wname),
+            resume_states=resume_states, expected_peers=self.order.index(wname), map_path=self.map_path,
             checkpoint_every=self.cfg.run.checkpoint_every,
             checkpoint_dir=str(self.run_dir / "checkpoint") if self.cfg.run.checkpoint_every else "")
 
@@ -191,6 +213,7 @@ class Supervisor:
 
     def _on_signal(self, signum: int, _frame: Any) -> None:
         self.interrupts += 1
+        self.last_signal = signum
         if self.interrupts >= 2:
             log.warning("second interrupt: killing every process of the run")
             for p in self.procs.values():
@@ -229,7 +252,8 @@ class Supervisor:
             signal.signal(signal.SIGINT, old_int)
             signal.signal(signal.SIGTERM, old_term)
         report = self._complete_report(interrupted)
-        return RunResult(self.run_dir, report, interrupted, dict(self.restarts))
+        return RunResult(self.run_dir, report, interrupted, dict(self.restarts),
+                         self.last_signal if interrupted else None)
 
     def _resume_frame(self) -> int:
         return self.resume_cut or 0
@@ -285,10 +309,18 @@ class Supervisor:
                     self.cfg.run.max_restarts)
         self.restarts[w] = n + 1
         spec = self.worker_spec(w)
+        cuts = []
         for s in spec.stages:
             path = latest_stage_state(self.run_dir / "checkpoint", s.name)
             if path is not None:
                 spec.resume_states[s.name] = str(path)
+                cuts.append(int(path.parent.name))
+        src = self.collector.snapshot().get("source", {}) if self.collector is not None else {}
+        # what the report says about the crash: when, how, which state came back, and the source's
+        # frame count then (the frames lost in between are those the stage never saw)
+        self.restart_events.append({
+            "worker": w, "time_s": round(time.time() - self.t_start, 3), "exit_code": exitcode,
+            "resumed_from_cut": min(cuts) if cuts else None, "frames_in_at_restart": src.get("frames_in")})
         self._start(w, worker_entry, spec)
 
     def _shutdown(self) -> None:
@@ -333,6 +365,8 @@ class Supervisor:
         else:
             report = {"error": "the monitor wrote no report"}
         report["restarts"] = dict(self.restarts)
+        report["restart_events"] = list(self.restart_events)
+        report["signal"] = self.last_signal if interrupted else None
         report["interrupted"] = interrupted
         report["run_dir"] = str(self.run_dir)
         report["workers"] = {w: [s.name for s in specs] for w, specs in self.groups.items()}
@@ -342,6 +376,9 @@ class Supervisor:
         return report
 
 
-def run(cfg: Any, run_dir: str | Path | None = None, resume: str | Path | None = None) -> RunResult:
-    """Run ``cfg`` to the end (or until interrupted) and return the report."""
-    return Supervisor(cfg, run_dir, resume).run()
+def run(cfg: Any, run_dir: str | Path | None = None, resume: str | Path | None = None,
+        map_path: str | Path | None = None) -> RunResult:
+    """Run ``cfg`` to the end (or until interrupted) and return the report. ``resume``: a run
+    folder to continue from its last complete checkpoint; ``map_path``: an exported map to start
+    from (a new session on an old map)."""
+    return Supervisor(cfg, run_dir, resume, map_path).run()

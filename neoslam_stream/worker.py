@@ -21,6 +21,7 @@ import time
 import traceback
 from collections import defaultdict
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -56,6 +57,9 @@ class WorkerSpec:
     log_level: str = "WARNING"
     #: adapter state to load before processing (stage name -> path of a state file), see checkpoint.py
     resume_states: dict[str, str] = field(default_factory=dict)
+    #: an exported map (``neoslam map export``) to start from: each stage loads its part, then
+    #: starts a new session (see StageAdapter.new_session)
+    map_path: str = ""
     #: number of other processes this one should be linked to before it announces readiness
     expected_peers: int = 0
     #: save each stage's state at every multiple of this frame number (0 = never)
@@ -165,14 +169,18 @@ class Worker:
                     self.produced_inside.add(t)
 
     def setup(self) -> None:
-        """Heavy initialisation of every adapter, then any state to resume from."""
+        """Heavy initialisation of every adapter, then an imported map or a state to resume from."""
+        from .checkpoint import load_map_file, load_state_file
+
+        imported = load_map_file(self.spec.map_path)["stages"] if self.spec.map_path else {}
         for st in self.stages:
             st.adapter.setup()
             path = self.spec.resume_states.get(st.name)
             if path:
-                from .checkpoint import load_state_file
-
                 st.adapter.load_state_dict(load_state_file(path))
+            elif st.name in imported:
+                st.adapter.load_state_dict(imported[st.name])
+                st.adapter.new_session()
 
     @property
     def external_inputs(self) -> list[str]:
@@ -386,6 +394,19 @@ class Worker:
             if self.stop_requested and not self.spec.lossless:
                 break
 
+    def _save_final_states(self) -> None:
+        """Every stateful stage's state at the end of the run, in RUN_DIR/state/ (the map that
+        ``neoslam map export`` packs), written atomically."""
+        from .checkpoint import save_state_file
+
+        for st in self.stages:
+            try:
+                state = st.adapter.state_dict()
+                if state:
+                    save_state_file(Path(self.spec.run_dir) / "state" / f"{st.name}.state", state)
+            except Exception as exc:  # never lose the flush over it; say so
+                log.error("stage %s: final state not saved: %s", st.name, exc)
+
     def shutdown(self) -> None:
         for i, st in enumerate(self.stages):
             try:
@@ -395,6 +416,7 @@ class Worker:
                 outs = []
             now = time.time()
             self._emit(i, outs, st.name, {}, now, now)
+        self._save_final_states()
         self.publish_stats(final=True)
         # samples still in flight are lost if the session closes at once (research B.2)
         time.sleep(0.3)

@@ -27,9 +27,10 @@ is O(1) and memory follows the number of postings), but walking scattered blocks
 memory latency once the index outgrows the cache (1.3 ms per frame at K = 100k). So whenever the
 linked part holds more than a quarter of the compacted part (and at least COMPACT_MIN postings),
 both are merged into one contiguous CSR array (offsets per bit), which the scoring loop streams
-with hardware prefetching (0.6 ms at K = 100k). Compaction costs O(postings) and happens after
-the index grew by 25 %, so its amortised cost per frame is constant; bench/frontend.py reports its
-duration at K = 100k.
+with hardware prefetching (0.6 ms at K = 100k). A merge costs O(postings) (~170 ms at K = 100k,
+bench/frontend.py) and happens after the index grew by 25 %, on a background thread: meanwhile
+new postings go to a fresh linked part and scores read all three parts, so no frame waits for it
+and results do not depend on when it finishes.
 """
 
 from __future__ import annotations
@@ -107,7 +108,7 @@ def _scores_csr(ptr, post, bits, out):  # pragma: no cover - compiled
             out[post[i]] += 1
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _compact(ptr, post, pool, nxt, head, tail, fill):  # pragma: no cover - compiled
     """Merge the CSR part and the linked blocks into one new CSR index (ptr, post)."""
     n_bits = head.shape[0]
@@ -177,6 +178,8 @@ class SpatialViewCells:
         self._tail = np.full(self.sdr_size, -1, dtype=np.int32)
         self._fill = np.zeros(self.sdr_size, dtype=np.int32)
         self._n_blocks = 0
+        # a linked part being merged in the background: (its arrays, the future of the merge)
+        self._frozen: tuple[tuple[np.ndarray, ...], Any] | None = None
 
     def _post_bits(self, bits: np.ndarray, interval: int) -> None:
         need = self._n_blocks + len(bits)
@@ -190,15 +193,43 @@ class SpatialViewCells:
         self._n_blocks = _append_postings(self._pool, self._next, self._head, self._tail, self._fill,
                                           self._n_blocks, bits, interval)
         self._linked_postings += len(bits)
-        if self._linked_postings >= max(COMPACT_MIN, self._post.shape[0] // 4):
-            self.compact()
+        if self._frozen is not None and self._frozen[1].done():
+            self._finish_background_merge()
+        if self._frozen is None and self._linked_postings >= max(COMPACT_MIN, self._post.shape[0] // 4):
+            self._start_background_merge()
+
+    def _linked_arrays(self) -> tuple[np.ndarray, ...]:
+        return self._pool, self._next, self._head, self._tail, self._fill
+
+    def _start_background_merge(self) -> None:
+        """Freeze the linked part, start merging it with the CSR part on a background thread
+        (the numba kernel releases the GIL) and take a fresh linked part for new postings.
+        Until the merge is done, scores read the CSR part, the frozen part and the new part: the
+        same counts, so results do not depend on when the merge finishes; a frame never waits
+        for it (a merge at K = 100k takes ~170 ms, five frames at 30 FPS)."""
+        from concurrent.futures import ThreadPoolExecutor
+
+        if getattr(self, "_executor", None) is None:
+            self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="svc-compact")
+        frozen = self._linked_arrays()
+        future = self._executor.submit(_compact, self._ptr, self._post, *frozen)
+        self.merges = getattr(self, "merges", 0) + 1
+        self._reset_linked(1024)
+        self._frozen = (frozen, future)
+
+    def _finish_background_merge(self) -> None:
+        assert self._frozen is not None
+        self._ptr, self._post = self._frozen[1].result()
+        self._frozen = None
 
     def compact(self) -> None:
-        """Merge the linked postings into the contiguous CSR part (see the module docstring)."""
+        """Merge every linked posting into the contiguous CSR part now (waits for a background
+        merge in progress first); see the module docstring."""
+        if self._frozen is not None:
+            self._finish_background_merge()
         if self._linked_postings == 0:
             return
-        self._ptr, self._post = _compact(self._ptr, self._post, self._pool, self._next, self._head,
-                                         self._tail, self._fill)
+        self._ptr, self._post = _compact(self._ptr, self._post, *self._linked_arrays())
         self._reset_linked(1024)
 
     @property
@@ -248,6 +279,8 @@ class SpatialViewCells:
             scores = self._scores[:k_all]
             scores[:] = 0
             _scores_csr(self._ptr, self._post, y, scores)
+            if self._frozen is not None:
+                _scores(*self._frozen[0], y, scores)
             if self._linked_postings:
                 _scores(self._pool, self._next, self._head, self._tail, self._fill, y, scores)
             best = int(np.argmax(scores[:limit]))  # first maximum = lowest index
@@ -308,10 +341,13 @@ class SpatialViewStage(StageAdapter):
     def setup(self) -> None:
         # compile (or load from numba's cache) every kernel before the first frame arrives
         warm = SpatialViewCells(**self.config.model_dump())
-        for i in range(6):
-            warm.compute(np.arange(i % 3, min(self.config.sdr_size, 512 + i % 3), dtype=np.int64))
+        n = self.config.sdr_size
+        # disjoint SDRs open a new interval each, so scoring runs on linked postings, then on
+        # the compacted index, with the dtype the stage hands over (int32)
+        for i in range(self.config.exclude_recent_intervals + 3):
+            warm.compute((np.arange(64, dtype=np.uint32) + 64 * i) % n)
         warm.compact()
-        warm.compute(np.arange(0, min(self.config.sdr_size, 512), dtype=np.int64))
+        warm.compute(np.arange(64, dtype=np.uint32))
 
     def process(self, topic: str, msg: Message) -> Output:
         try:
@@ -337,6 +373,9 @@ class SpatialViewStage(StageAdapter):
 
     def state_dict(self) -> dict[str, Any]:
         return {"cells": self.cells.state_dict(), "rows": [list(r) for r in self.rows], "loops": self.loops}
+
+    def new_session(self) -> None:
+        self.rows, self.loops = [], 0  # templates.csv lists this session's frames
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.cells.load_state_dict(state["cells"])

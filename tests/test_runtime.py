@@ -4,18 +4,17 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import psutil
 import pytest
-import yaml
+from runhelpers import attach, finish, start_run, wait_stats
 
-from neoslam_stream.bus import key_for, open_session
+from neoslam_stream.bus import key_for
 from neoslam_stream.config import ConfigError, load_config
-from neoslam_stream.messages import Message, decode, encode
+from neoslam_stream.messages import Message, encode
 from neoslam_stream.topology import run
 
 pytestmark = pytest.mark.zenoh
@@ -77,46 +76,15 @@ def _start_run(tmp_path: Path, frames: int, rate: float, taus: list[float], mode
     if extra:
         for k, v in extra.items():
             cfg.setdefault(k, {}).update(v)
-    path = tmp_path / "cfg.yaml"
-    path.write_text(yaml.safe_dump(cfg))
-    return subprocess.Popen([sys.executable, "-m", "neoslam_stream.cli", "run", "-c", str(path), "--out",
-                             str(tmp_path / "run")], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            text=True)
+    return start_run(tmp_path, cfg)
 
 
 def _attach(tmp_path: Path, timeout: float = 240.0):
-    ep_file = tmp_path / "run" / "endpoints.json"
-    deadline = time.monotonic() + timeout
-    while not ep_file.exists():
-        assert time.monotonic() < deadline, "run did not start"
-        time.sleep(0.1)
-    ep = json.loads(ep_file.read_text())
-    session = open_session(listen=[], connect=ep["connect"], mode="client")
-    time.sleep(0.5)
-    return session, ep["run"]
+    return attach(tmp_path / "run", timeout)
 
 
-def _wait_stats(session, run_id: str, stage: str, timeout: float = 240.0, until=None) -> dict:
-    """The first stats of ``stage`` (for which ``until(stats)`` holds, when given)."""
-    got = {}
-
-    def on(sample):
-        data = decode(sample.payload.to_bytes()).data
-        if until is None or until(data):
-            got.update(data)
-
-    sub = session.declare_subscriber(key_for(run_id, f"stats/{stage}"), on)
-    deadline = time.monotonic() + timeout
-    while not got and time.monotonic() < deadline:
-        time.sleep(0.05)
-    sub.undeclare()
-    assert got, f"no stats from {stage}"
-    return got
-
-
-def _finish(proc: subprocess.Popen, timeout: float = 400.0) -> str:
-    out, _ = proc.communicate(timeout=timeout)
-    return out
+_wait_stats = wait_stats
+_finish = finish
 
 
 def test_malformed_payload_is_counted_and_skipped(tmp_path):

@@ -164,6 +164,12 @@ class PoseCellsStage(StageAdapter):
                 store[m.frame] = m
 
 
+    def new_session(self) -> None:
+        self.pending, self.templates_waiting = OrderedDict(), OrderedDict()
+        self.last_template_frame = self.max_odom_frame = self.last_odom_frame = -1
+        self.prev_odom_stamp = None
+
+
 class ExperienceMapStage(StageAdapter):
     """Experience map in a stage: ``pose_cells/action`` (with its odometry) -> ``experience_map/pose``
     per message; ``experience_map/map`` and ``map.json`` + ``trajectory.tum`` (when ``run_dir`` is
@@ -209,6 +215,9 @@ class ExperienceMapStage(StageAdapter):
         last = self.trajectory[-1] if self.trajectory else (0, 0.0)
         return [("experience_map/map", Message("experience_map/map", last[0], last[1],
                                                {"nodes": nodes, "links": links}))]
+
+    def new_session(self) -> None:
+        self.trajectory = []  # the map stays; the path is this session's
 
     def info(self) -> dict[str, Any]:
         return {"experiences": self.em.n_experiences, "links": self.em.n_links,

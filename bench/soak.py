@@ -1,0 +1,118 @@
+"""Soak: NeoSLAM for a long time at camera rate on the looped synthetic world -> bench/results/soak.json.
+
+One real-time (drop-oldest) pipeline run at ``--rate`` FPS for ``--duration`` seconds (default one
+hour), then the monitor's stats.jsonl sampled every ``--every`` seconds: frames in, frames done,
+loss in that interval and since the start, RSS of every worker and in total. Memory is bounded
+when the RSS curve flattens: the report gives the growth rate over the second half of the run
+(MB per hour) next to the state the stages keep (TM segments/synapses, spatial-view intervals,
+experiences), which must grow with new places only.
+
+Run: ``.venv/bin/python bench/soak.py [--duration 3600] [--rate 30] [--out bench/results/soak.json]``.
+Also writes soak.png next to the JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from neoslam_stream.throughput import rate_sweep  # noqa: E402
+
+
+def minutes(stats_path: Path, every_s: float) -> list[dict]:
+    rows: list[dict] = []
+    next_t = every_s
+    prev_in = prev_done = 0
+    for line in stats_path.read_text().splitlines():
+        try:
+            snap = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if snap["t_s"] < next_t:
+            continue
+        next_t = (snap["t_s"] // every_s + 1) * every_s
+        st = snap["stages"]
+        done = st.get("experience_map", {}).get("processed", 0)
+        fin = snap.get("frames_in", 0)
+        rss = {n: s.get("rss_mb") for n, s in st.items()}
+        by_worker = {s.get("worker", n): s.get("rss_mb") or 0.0 for n, s in st.items()}
+        d_in, d_done = fin - prev_in, done - prev_done
+        rows.append({"t_s": snap["t_s"], "frames_in": fin, "frames_done": done,
+                     "loss_interval": 1 - d_done / d_in if d_in > 0 else None,
+                     "loss_total": 1 - done / fin if fin > 0 else None,
+                     "rss_mb": rss, "rss_total_mb": sum(by_worker.values()),
+                     "tm_segments": (st.get("C", {}).get("info") or {}).get("segments"),
+                     "tm_synapses": (st.get("C", {}).get("info") or {}).get("synapses"),
+                     "svc_intervals": (st.get("D", {}).get("info") or {}).get("intervals"),
+                     "experiences": (st.get("experience_map", {}).get("info") or {}).get("experiences")})
+        prev_in, prev_done = fin, done
+    return rows
+
+
+def growth_per_hour(rows: list[dict]) -> float | None:
+    pts = [(r["t_s"], r["rss_total_mb"]) for r in rows[len(rows) // 2:]]
+    if len(pts) < 2:
+        return None
+    n = len(pts)
+    mx, my = sum(p[0] for p in pts) / n, sum(p[1] for p in pts) / n
+    sxx = sum((p[0] - mx) ** 2 for p in pts)
+    return 3600.0 * sum((p[0] - mx) * (p[1] - my) for p in pts) / sxx if sxx else None
+
+
+def plot(res: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = res["minutes"]
+    t = [r["t_s"] / 60 for r in rows]
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+    ax[0].plot(t, [r["rss_total_mb"] for r in rows], "k-", label="all workers")
+    for name in sorted(rows[-1]["rss_mb"]) if rows else []:
+        ax[0].plot(t, [r["rss_mb"].get(name) for r in rows], lw=0.8, label=name)
+    ax[0].set(xlabel="minutes", ylabel="RSS (MB)", title="Memory")
+    ax[0].legend(fontsize=7)
+    ax[1].plot(t, [100 * (r["loss_interval"] or 0) for r in rows], "o-", ms=3)
+    ax[1].set(xlabel="minutes", ylabel="frames lost in the interval (%)",
+              title=f"Loss at {res['rate']:g} FPS (total {100 * res['loss']:.3f} %)")
+    for a in ax:
+        a.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--duration", type=float, default=3600.0, help="seconds (default 3600)")
+    ap.add_argument("--rate", type=float, default=30.0)
+    ap.add_argument("--every", type=float, default=60.0, help="seconds between two samples")
+    ap.add_argument("--config", default=None)
+    ap.add_argument("--backbone", default="random_alexnet")
+    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "soak.json"))
+    args = ap.parse_args()
+    out = Path(args.out)
+    work = out.parent / "soak_runs"
+    (row,) = rate_sweep(args.config, [args.rate], args.duration, ["pipeline"], work, args.backbone)
+    rows = minutes(work / "runs" / f"pipeline-{args.rate:g}" / "stats.jsonl", args.every)
+    res = {"rate": args.rate, "duration_s": args.duration, "frames_in": row["frames_in"],
+           "frames_out": row["frames_processed"], "loss": row["loss"], "errors": row["errors"],
+           "restarts": row["restarts"], "backbone": row["backbone"],
+           "rss_total_mb_first": rows[0]["rss_total_mb"] if rows else None,
+           "rss_total_mb_last": rows[-1]["rss_total_mb"] if rows else None,
+           "rss_growth_mb_per_hour_second_half": growth_per_hour(rows),
+           "stages": row["stages"], "minutes": rows}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(res, indent=2))
+    if rows:
+        plot(res, out.with_suffix(".png"))
+    print(json.dumps({k: v for k, v in res.items() if k not in ("minutes", "stages")}, indent=2))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,60 @@
+"""Helpers for tests that drive ``neoslam run`` as a real child process and attach to its zenoh."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from neoslam_stream.bus import key_for, open_session
+from neoslam_stream.messages import decode
+
+
+def start_run(tmp_path: Path, cfg: dict[str, Any], *args: str, run_dir: Path | None = None) -> subprocess.Popen:
+    """``neoslam run -c <cfg> --out <run_dir> [args]`` in a child process (output captured)."""
+    path = tmp_path / f"cfg-{time.monotonic_ns()}.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    run_dir = run_dir or tmp_path / "run"
+    return subprocess.Popen([sys.executable, "-m", "neoslam_stream.cli", "run", "-c", str(path), "--out",
+                             str(run_dir), *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def attach(run_dir: Path, timeout: float = 240.0):
+    """A client zenoh session on the run's router, and the run id (waits for endpoints.json)."""
+    ep_file = Path(run_dir) / "endpoints.json"
+    deadline = time.monotonic() + timeout
+    while not ep_file.exists():
+        assert time.monotonic() < deadline, "run did not start"
+        time.sleep(0.1)
+    ep = json.loads(ep_file.read_text())
+    session = open_session(listen=[], connect=ep["connect"], mode="client")
+    time.sleep(0.5)
+    return session, ep["run"]
+
+
+def wait_stats(session, run_id: str, stage: str, timeout: float = 240.0, until=None) -> dict:
+    """The first stats of ``stage`` (for which ``until(stats)`` holds, when given)."""
+    got: dict[str, Any] = {}
+
+    def on(sample):
+        data = decode(sample.payload.to_bytes()).data
+        if until is None or until(data):
+            got.update(data)
+
+    sub = session.declare_subscriber(key_for(run_id, f"stats/{stage}"), on)
+    deadline = time.monotonic() + timeout
+    while not got and time.monotonic() < deadline:
+        time.sleep(0.05)
+    sub.undeclare()
+    assert got, f"no stats from {stage}"
+    return got
+
+
+def finish(proc: subprocess.Popen, timeout: float = 400.0) -> str:
+    out, _ = proc.communicate(timeout=timeout)
+    return out

@@ -86,6 +86,7 @@ class Supervisor:
         self.interrupts = 0
         self.last_signal: int | None = None
         self.restart_events: list[dict[str, Any]] = []
+        self.source_failure: str | None = None
         self.t_start = time.time()
         self.resume = Path(resume) if resume else None
         self.resume_cut: int | None = None
@@ -224,14 +225,16 @@ class Supervisor:
     def run(self) -> RunResult:
         (self.run_dir / "config.yaml").write_text(yaml.safe_dump(self.cfg.model_dump(mode="json"),
                                                                  sort_keys=False))
-        (self.run_dir / "endpoints.json").write_text(json.dumps(
-            {"run": self.run_id, "name": self.name, "connect": [self.endpoints["supervisor"]],
-             "mode": "client"}, indent=2))
         old_int = signal.signal(signal.SIGINT, self._on_signal)
         old_term = signal.signal(signal.SIGTERM, self._on_signal)
         # a router, so that tools attaching in client mode (`neoslam monitor`) reach every process
         self.session = open_session([self.endpoints["supervisor"], *self.cfg.bus.listen],
                                     list(self.cfg.bus.connect), self.cfg.bus.shm, mode="router")
+        # written once the router listens: whoever reads it can connect at once
+        tmp = self.run_dir / "endpoints.json.tmp"
+        tmp.write_text(json.dumps({"run": self.run_id, "name": self.name,
+                                   "connect": [self.endpoints["supervisor"]], "mode": "client"}, indent=2))
+        os.replace(tmp, self.run_dir / "endpoints.json")
         self.collector = StatsCollector()
         stats_sub = self.session.declare_subscriber(key_for(self.run_id, "stats/**"),
                                                     self.collector.on_sample)
@@ -245,6 +248,10 @@ class Supervisor:
             start_frame = self._resume_frame()
             self._start("source", source_entry, self.source_spec(start_frame))
             interrupted = self._supervise()
+        except RunError:
+            if not self.interrupts:
+                raise
+            interrupted = True  # Ctrl-C during start-up or a crash while stopping: an interrupted run
         finally:
             self._shutdown()
             stats_sub.undeclare()
@@ -252,6 +259,8 @@ class Supervisor:
             signal.signal(signal.SIGINT, old_int)
             signal.signal(signal.SIGTERM, old_term)
         report = self._complete_report(interrupted)
+        if self.source_failure:
+            raise RunError(f"the source failed: {self.source_failure} (report: {self.run_dir / 'report.json'})")
         return RunResult(self.run_dir, report, interrupted, dict(self.restarts),
                          self.last_signal if interrupted else None)
 
@@ -271,6 +280,11 @@ class Supervisor:
             self._restart_crashed()
             src = self.collector.snapshot().get("source", {})
             source_proc = self.procs["source"]
+            if not source_proc.is_alive() and source_proc.exitcode not in (0, None) and not src.get("done"):
+                err = self.run_dir / "source_error.txt"
+                self.source_failure = (err.read_text().strip() if err.exists()
+                                       else f"the source process died with exit code {source_proc.exitcode}")
+                return False
             if src_done_at is None and (src.get("done") or not source_proc.is_alive()):
                 src_done_at = time.monotonic()
             if src_done_at is None:
@@ -367,6 +381,7 @@ class Supervisor:
         report["restarts"] = dict(self.restarts)
         report["restart_events"] = list(self.restart_events)
         report["signal"] = self.last_signal if interrupted else None
+        report["source_failure"] = self.source_failure
         report["interrupted"] = interrupted
         report["run_dir"] = str(self.run_dir)
         report["workers"] = {w: [s.name for s in specs] for w, specs in self.groups.items()}

@@ -126,6 +126,10 @@ class StageRuntime:
         self.times = ServiceStats()
         self.last_frame = -1
         self.checkpoint_index = 0
+        #: multi-input stages with checkpoints: messages at or beyond the next cut, held until
+        #: every input has reached the cut (see Worker._run_stage), and how far each input got
+        self.deferred: list[tuple[str, Message, float]] = []
+        self.reached: dict[str, int] = {}
 
     def record_error(self, cause: str) -> None:
         self.errors += 1
@@ -178,6 +182,9 @@ class Worker:
             path = self.spec.resume_states.get(st.name)
             if path:
                 st.adapter.load_state_dict(load_state_file(path))
+                cut = Path(path).parent.name
+                if cut.isdigit() and self.spec.checkpoint_every > 0:  # the next cut follows this one
+                    st.checkpoint_index = int(cut) // self.spec.checkpoint_every
             elif st.name in imported:
                 st.adapter.load_state_dict(imported[st.name])
                 st.adapter.new_session()
@@ -238,10 +245,62 @@ class Worker:
 
         save_stage_state(self.spec.checkpoint_dir, st.checkpoint_index * n, st.name, st.adapter.state_dict())
 
-    def _run_stage(self, idx: int, topic: str, msgs: list[Message], received: list[float]) -> None:
+    #: a multi-input stage holds at most this many messages for a cut; beyond, it cuts anyway
+    #: (an input that never reaches the cut, e.g. no odometry at all, must not stall the stage)
+    MAX_DEFERRED = 512
+
+    def _hold_for_cut(self, idx: int, topic: str, msgs: list[Message],
+                      received: list[float]) -> tuple[list[Message], list[float]]:
+        """Multi-input stages: the state saved for cut C must hold every frame < C of *every*
+        input and nothing beyond, but inputs run at different paces (odometry is ahead of the
+        templates). Messages of frames >= C wait until each input has reached C; then the state
+        is saved and they are processed. Returns the messages that may be processed now."""
         st = self.stages[idx]
+        n = self.spec.checkpoint_every
+        cut = (st.checkpoint_index + 1) * n
+        ready_m, ready_r = [], []
+        for m, r in zip(msgs, received, strict=True):
+            if m.frame >= cut:
+                st.deferred.append((topic, m, r))
+                st.reached[topic] = max(st.reached.get(topic, -1), m.frame)
+            else:
+                ready_m.append(m)
+                ready_r.append(r)
+        return ready_m, ready_r
+
+    def _release_cut(self, idx: int) -> None:
+        st = self.stages[idx]
+        n = self.spec.checkpoint_every
+        cut = (st.checkpoint_index + 1) * n
+        if not st.deferred:
+            return
+        if not all(st.reached.get(t, -1) >= cut for t in st.inputs) and len(st.deferred) < self.MAX_DEFERRED:
+            return
+        from .checkpoint import save_stage_state
+
+        st.checkpoint_index = cut // n
+        save_stage_state(self.spec.checkpoint_dir, cut, st.name, st.adapter.state_dict())
+        held, st.deferred = st.deferred, []
+        for t, m, r in held:  # in arrival order; the next cut may hold some of them again
+            self._run_stage(idx, t, [m], [r], counted=True)
+
+    def _run_stage(self, idx: int, topic: str, msgs: list[Message], received: list[float],
+                   counted: bool = False) -> None:
+        st = self.stages[idx]
+        if self.spec.checkpoint_every > 0 and len(st.inputs) > 1:
+            if not counted:
+                st.received += len(msgs)
+            msgs, received = self._hold_for_cut(idx, topic, msgs, received)
+            if msgs:
+                self._process(idx, topic, msgs, received)
+            self._release_cut(idx)
+            return
         st.received += len(msgs)
         self._maybe_checkpoint(st, min(m.frame for m in msgs))
+        self._process(idx, topic, msgs, received)
+
+    def _process(self, idx: int, topic: str, msgs: list[Message], received: list[float]) -> None:
+        st = self.stages[idx]
         started = time.time()
         local = st.to_adapter.get(topic, topic)
         try:
@@ -409,6 +468,9 @@ class Worker:
 
     def shutdown(self) -> None:
         for i, st in enumerate(self.stages):
+            held, st.deferred = st.deferred, []
+            for t, m, r in held:  # the stream ended before every input reached the next cut
+                self._process(i, t, [m], [r])
             try:
                 outs = st.adapter.flush()
             except Exception as exc:

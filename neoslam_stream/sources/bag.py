@@ -103,11 +103,17 @@ class BagSource(Source):
         self.topics = {"image": image_topic, "odom": odom_topic, "groundtruth": groundtruth_topic}
         if not any(self.topics.values()):
             raise ValueError("name at least one of image_topic, odom_topic, groundtruth_topic")
-        self._reader_cls = AnyReader
         self._typestore = get_typestore(getattr(Stores, typestore))
         self.max_frames = max_frames
         self.groundtruth_max_gap_s = groundtruth_max_gap_s
-        with AnyReader([self.path], default_typestore=self._typestore) as reader:
+        self.salvaged: str | None = None
+        self._open: Any = lambda: AnyReader([self.path], default_typestore=self._typestore)
+        try:
+            with self._open():
+                pass
+        except Exception as exc:
+            self._salvage_or_raise(exc)
+        with self._open() as reader:
             available = {c.topic: c.msgtype for c in reader.connections}
             for role, topic in self.topics.items():
                 if topic and topic not in available:
@@ -125,7 +131,7 @@ class BagSource(Source):
     def __iter__(self) -> Iterator[SourceFrame]:
         frame_topic = self.topics["image"] or self.topics["odom"] or self.topics["groundtruth"]
         wanted = {t for t in self.topics.values() if t}
-        with self._reader_cls([self.path], default_typestore=self._typestore) as reader:
+        with self._open() as reader:
             table = self._groundtruth_table(reader) if self.topics["groundtruth"] else None
             if frame_topic != self.topics["groundtruth"]:
                 wanted.discard(self.topics["groundtruth"])  # already in the table
@@ -163,6 +169,28 @@ class BagSource(Source):
                 if self.max_frames and frame >= self.max_frames:
                     return
 
+    def _salvage_or_raise(self, exc: Exception) -> None:
+        """A bag rosbags cannot open: read what is left of a truncated MCAP file (counted as one
+        source error with its cause), or fail with a clear message."""
+        from .mcap_salvage import SalvageMcapReader
+
+        mcaps = [self.path] if self.path.suffix == ".mcap" else sorted(self.path.glob("*.mcap")) \
+            if self.path.is_dir() else []
+        if len(mcaps) == 1:
+            try:
+                reader = SalvageMcapReader(mcaps[0], self._typestore)
+            except (OSError, ValueError):
+                reader = None
+            if reader is not None and reader.messages_read:
+                self.salvaged = (f"{mcaps[0].name} cannot be opened normally ({exc}); "
+                                 f"{'truncated: ' if reader.cut else ''}read its first {reader.messages_read} "
+                                 "messages record by record")
+                self.record_error(self.salvaged)
+                self._open = lambda: reader
+                return
+        raise ValueError(f"cannot read bag {self.path}: {type(exc).__name__}: {exc} "
+                         "(a truncated or corrupt file?)") from None
+
     def _groundtruth_table(self, reader: Any) -> np.ndarray:
         """(n, 4) stamp, x, y, theta of every valid ground-truth message, in time order."""
         conns = [c for c in reader.connections if c.topic == self.topics["groundtruth"]]
@@ -197,4 +225,4 @@ class BagSource(Source):
 
     def info(self) -> dict[str, Any]:
         return {"kind": "bag", "path": str(self.path), "topics": self.topics, "frames": self.length,
-                "rate_hz": self.rate_hz}
+                "rate_hz": self.rate_hz, "salvaged": self.salvaged}

@@ -162,7 +162,13 @@ def run_source(spec: SourceRunSpec) -> None:
 
     signal.signal(signal.SIGTERM, _stop)
     signal.signal(signal.SIGINT, _stop)
-    source = spec.source.build()
+    try:
+        source = spec.source.build()
+    except Exception as exc:  # a missing file, an unreadable bag, a bad parameter: say it plainly
+        cause = f"{type(exc).__name__}: {exc}"
+        log.error("the source cannot start: %s", cause)
+        Path(spec.run_dir, "source_error.txt").write_text(cause + "\n")
+        sys.exit(3)
     session = open_session(spec.listen, spec.connect, spec.shm)
     bus = Bus(session, spec.run, spec.lossless)
     progress = _Progress()
@@ -196,7 +202,6 @@ def run_source(spec: SourceRunSpec) -> None:
     last_frame = -1
     done = False
     info = source.info()
-    next_stats = time.monotonic()
 
     # the source's own faults (unreadable records, a truncated file, a frame that cannot be
     # encoded): counted per cause, logged once, reported like a stage's errors
@@ -246,6 +251,17 @@ def run_source(spec: SourceRunSpec) -> None:
     gt_rows: list[tuple[float, float, float, float]] = []
     odo_rows: list[tuple[float, float, float, float]] = []
     ox = oy = oth = 0.0
+    publish_stats()  # "linked and about to read": tools waiting for the source see it now
+
+    # stats go out on their own clock: a live source may wait a long time for its next frame
+    def _stats_loop() -> None:
+        while not stop.wait(1.0 / spec.stats_hz) and not done:
+            try:
+                publish_stats()
+            except Exception as exc:  # stats must never stop the source
+                log.debug("source stats not published: %s", exc)
+
+    threading.Thread(target=_stats_loop, name="source-stats", daemon=True).start()
     try:
         for sf in _guarded(source, record_error):
             if stop.is_set():
@@ -303,9 +319,6 @@ def run_source(spec: SourceRunSpec) -> None:
             n_sent += 1
             if bar is not None:
                 bar.update(task, advance=1)
-            if time.monotonic() >= next_stats:
-                publish_stats()
-                next_stats = time.monotonic() + 1.0 / spec.stats_hz
         done = True
         publish_stats()
         # Keep the session (and any shared-memory buffers) alive until the supervisor has seen the

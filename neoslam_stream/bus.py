@@ -22,6 +22,7 @@ kept) and ``FifoChannel(capacity)`` (producer blocks); tests check both through 
 from __future__ import annotations
 
 import json
+import os
 import random
 import socket
 import threading
@@ -40,6 +41,9 @@ def key_for(run: str, topic: str) -> str:
     """Key expression of a topic in a run: ``neoslam/<run>/<topic>``."""
     return f"{KEY_ROOT}/{run}/{topic}"
 
+
+#: environment variable naming a zenoh config file applied under neoslam's own settings
+ZENOH_CONFIG_ENV = "NEOSLAM_ZENOH_CONFIG"
 
 _ISSUED_PORTS: set[int] = set()
 
@@ -80,7 +84,10 @@ def free_port(host: str = "127.0.0.1") -> int:
 def make_config(listen: Sequence[str] | None = None, connect: Sequence[str] | None = None,
                 shm: bool = False, mode: str = "peer") -> zenoh.Config:
     """A zenoh config with safe defaults: scouting off, loopback listening, optional SHM."""
-    conf = zenoh.Config()
+    # bus.zenoh_config: a zenoh json5 file for what neoslam does not set itself (TLS certificates,
+    # access control...); the supervisor hands it to every process of the run in this variable
+    extra = os.environ.get(ZENOH_CONFIG_ENV)
+    conf = zenoh.Config.from_file(extra) if extra else zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("scouting/gossip/enabled", "false")

@@ -36,6 +36,9 @@ class BusConfig(Strict):
     #: per 260 KB message, but its first use in each process stalls the pipeline for tens of ms,
     #: which lost the 2nd and 3rd frame of every real-time run at 30 FPS (docs/performance.md)
     shm: bool = False
+    #: a zenoh json5 config file for settings neoslam does not make itself (TLS certificates,
+    #: access control; see docs/reliability.md); neoslam's endpoints, mode and scouting-off apply on top
+    zenoh_config: str | None = None
     #: input queue capacity per topic (real-time: ring, drop-oldest; lossless: FIFO, blocks).
     #: image 1 = always the newest frame; odom is tiny and needed for path integration, so deep.
     capacity: dict[str, int] = Field(default_factory=lambda: {"image": 1, "odom": 256, "groundtruth": 256,
@@ -43,6 +46,13 @@ class BusConfig(Strict):
     default_capacity: int = Field(2, ge=1)
     #: lossless mode: the source runs at most this many frames ahead of the final topic
     window: int = Field(8, ge=1)
+
+    @field_validator("zenoh_config")
+    @classmethod
+    def _exists(cls, v: str | None) -> str | None:
+        if v is not None and not Path(v).is_file():
+            raise ValueError(f"zenoh config file {v} does not exist")
+        return str(Path(v).resolve()) if v is not None else None
 
     @field_validator("capacity")
     @classmethod

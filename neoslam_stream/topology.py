@@ -29,7 +29,7 @@ from typing import Any
 
 import yaml
 
-from .bus import free_port, key_for, open_session
+from .bus import ZENOH_CONFIG_ENV, free_port, key_for, open_session
 from .checkpoint import cut_dir, latest_complete_cut, latest_stage_state
 from .messages import Message, encode
 from .monitor import MonitorSpec, StatsCollector
@@ -227,6 +227,8 @@ class Supervisor:
                                                                  sort_keys=False))
         old_int = signal.signal(signal.SIGINT, self._on_signal)
         old_term = signal.signal(signal.SIGTERM, self._on_signal)
+        if self.cfg.bus.zenoh_config:  # every process of the run (spawned children inherit it)
+            os.environ[ZENOH_CONFIG_ENV] = self.cfg.bus.zenoh_config
         # a router, so that tools attaching in client mode (`neoslam monitor`) reach every process
         self.session = open_session([self.endpoints["supervisor"], *self.cfg.bus.listen],
                                     list(self.cfg.bus.connect), self.cfg.bus.shm, mode="router")

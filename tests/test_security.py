@@ -75,3 +75,16 @@ def test_config_paths_are_validated_with_clear_errors(tmp_path):
     bad.write_bytes(b"\x00" * 1000)
     with pytest.raises(ValueError, match="bytes"):
         BinaryProjector(matrix_path=str(bad))
+
+
+def test_a_zenoh_config_file_adds_settings_but_never_reopens_scouting(tmp_path, monkeypatch):
+    from neoslam_stream.bus import ZENOH_CONFIG_ENV
+
+    f = tmp_path / "zenoh.json5"
+    f.write_text('{ metadata: { name: "robot1" }, scouting: { multicast: { enabled: true } } }')
+    monkeypatch.setenv(ZENOH_CONFIG_ENV, str(f))
+    conf = make_config(["tcp/127.0.0.1:7447"], [])
+    assert json.loads(conf.get_json("metadata"))["name"] == "robot1"  # the file's settings apply
+    assert json.loads(conf.get_json("scouting/multicast/enabled")) is False  # ours win
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_config(None, {"bus": {"zenoh_config": str(tmp_path / "missing.json5")}})

@@ -175,7 +175,7 @@ def test_index_compaction_gives_the_same_templates_as_a_brute_force_scan(monkeyp
     svc = sv.SpatialViewCells(sdr_size=400, **params)
     got = [svc.compute(f)["id"] for f in frames]
     svc.compact()  # waits for a background merge still running
-    assert svc.merges >= 3 and svc._post.shape[0] > 0  # merges did happen, in the background
+    assert svc.merges >= 1 and svc._post.shape[0] > 0  # merges did happen, in the background
     expected = _brute_force(frames, params["theta_alpha"], params["theta_rho"], params["theta_sigma"],
                             params["exclude_recent_intervals"])
     assert got == expected

@@ -188,6 +188,12 @@ class ExperienceMapStage(StageAdapter):
 
     def process(self, topic: str, msg: Message) -> Output:
         d = msg.data
+        if self.trajectory and msg.frame <= self.trajectory[-1][0]:
+            # an action the map has integrated already: the pose cells re-send the frames after
+            # their checkpoint when they restart after a crash; integrating them twice would move
+            # the robot twice
+            self.counters["replayed_skipped"] = self.counters.get("replayed_skipped", 0) + 1
+            return []
         for k in ("vtrans", "vrot", "dt"):
             if not isinstance(d.get(k), (int, float)) or isinstance(d.get(k), bool) or not math.isfinite(d[k]):
                 raise StageInputError(f"pose_cells/action field {k!r} missing or not a finite number")

@@ -22,19 +22,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from nordland import DATA, run_frontend  # noqa: E402
+from timing import p50  # noqa: E402
 
 from stages.features import VisualFeatureExtractor  # noqa: E402
 from stages.projector import BinaryProjector  # noqa: E402
 from stages.spatial_view import SpatialViewCells  # noqa: E402
-
-
-def p50(fn, reps: int) -> float:
-    times = []
-    for _ in range(reps):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return float(np.median(times)) * 1e3
 
 
 def bench_a(backbone: str, reps: int, batch: int, threads: int) -> tuple[float, float]:
@@ -62,18 +54,24 @@ def bench_b(reps: int, batch: int, threads: int) -> dict:
     return out
 
 
-def bench_d(k: int, reps: int) -> float:
-    """Per-frame time with K intervals whose unions are random 512-cell SDRs of 65536 cells.
-
-    The K intervals are restored through ``load_state_dict`` (which builds the inverted index like
-    K frames would, without K scoring passes), then ``reps`` random SDRs are processed.
-    """
+def _loaded_svc(k: int) -> tuple[np.random.Generator, list[np.ndarray], SpatialViewCells]:
+    """Spatial-view cells holding K intervals whose unions are random 512-cell SDRs."""
     rng = np.random.default_rng(k)
     unions = [np.sort(rng.choice(65536, 512, replace=False)).astype(np.uint32) for _ in range(k)]
     svc = SpatialViewCells()
     svc.load_state_dict({"params": [384, 3, 470, 3, 65536], "unions": unions, "start": np.arange(k),
                          "end": np.arange(k), "template": np.arange(k), "n_templates": k,
                          "current_template": k - 1, "t": k})
+    return rng, unions, svc
+
+
+def bench_d(k: int, reps: int) -> float:
+    """Per-frame time with K intervals whose unions are random 512-cell SDRs of 65536 cells.
+
+    The K intervals are restored through ``load_state_dict`` (which builds the inverted index like
+    K frames would, without K scoring passes), then ``reps`` random SDRs are processed.
+    """
+    rng, unions, svc = _loaded_svc(k)
     queries = [np.sort(rng.choice(65536, 512, replace=False)).astype(np.uint32) for _ in range(reps)]
     it = iter(queries)
     return p50(lambda: svc.compute(next(it)), reps)
@@ -82,12 +80,7 @@ def bench_d(k: int, reps: int) -> float:
 def bench_d_compaction(k: int) -> float:
     """Duration (ms) of one merge of the linked postings into the CSR index at K intervals, when the
     linked part holds a quarter of the CSR part (the moment it happens in a run)."""
-    rng = np.random.default_rng(k)
-    unions = [np.sort(rng.choice(65536, 512, replace=False)).astype(np.uint32) for _ in range(k)]
-    svc = SpatialViewCells()
-    svc.load_state_dict({"params": [384, 3, 470, 3, 65536], "unions": unions, "start": np.arange(k),
-                         "end": np.arange(k), "template": np.arange(k), "n_templates": k,
-                         "current_template": k - 1, "t": k})
+    _rng, unions, svc = _loaded_svc(k)
     for q in range(k // 4 - 1):  # fill the linked part just below the threshold
         svc._post_bits(unions[q].astype(np.int32), k + q)
     t0 = time.perf_counter()

@@ -13,7 +13,6 @@ from __future__ import annotations
 import json
 import math
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +21,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import tuc  # noqa: E402
+from timing import p50  # noqa: E402
 
 from stages.ratslam.experience_map import ExperienceMap  # noqa: E402
 from stages.ratslam.local_view import LocalViewCells  # noqa: E402
@@ -29,15 +29,6 @@ from stages.ratslam.pose_cells import PoseCellNetwork  # noqa: E402
 
 TUC_SETTINGS = dict(pc=dict(pc_dim_xy=30, pc_cell_x_size=1.0, exp_delta_pc_threshold=2.0),
                     em=dict(exp_loops=20, exp_initial_em_deg=0), threshold=0.6, min_gap_s=30.0)
-
-
-def p50(fn, reps):
-    ts = []
-    for _ in range(reps):
-        t = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t)
-    return float(np.median(ts) * 1e3)
 
 
 def bench_pc(n: int) -> float:

@@ -14,6 +14,7 @@ queued messages are processed, adapters flushed, outputs and final stats publish
 
 from __future__ import annotations
 
+import gc
 import logging
 import os
 import signal
@@ -511,6 +512,12 @@ def run_worker(spec: WorkerSpec) -> None:
     worker.build()
     worker.connect()
     worker.setup()
+    # first-call costs before the first frame: the stats path (psutil, percentiles), and a full
+    # garbage collection whose survivors (models, matrices, compiled kernels) are then frozen out
+    # of later collections, which would otherwise stall a frame now and then
+    worker.stats_messages()
+    gc.collect()
+    gc.freeze()
     worker.announce()
     try:
         worker.loop()

@@ -165,7 +165,9 @@ def cmd_bench_emulate(args: argparse.Namespace) -> int:
                     "drain_s": 0.0, "name": f"emulate-{topo}"},
             "source": {"kind": "emulated", "params": {"frames": None}, "rate": args.rate,
                        "pacing": "fixed", "duration": args.duration},
-            "emulated": {"tau_ms": taus, "busy": args.busy}})
+            "emulated": {"tau_ms": taus, "busy": args.busy},
+            # the worked example: a busy stage keeps only the newest frame
+            "bus": {"capacity": {"image": 1}}})
         run_dir = out if len(topologies) == 1 else out / topo
         res = run(cfg, run_dir)
         print_summary(res.report)

@@ -37,6 +37,9 @@ def cmd_bench_throughput(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as exc:
+        print(f"stopped: {exc}; results so far are in the run folders under {args.out}/runs", file=sys.stderr)
+        return 130
     if res.get("paper_table"):
         print()
         print(res["paper_table"])

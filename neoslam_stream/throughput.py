@@ -125,6 +125,8 @@ def rate_sweep(config: str | None, rates: list[float], duration: float, topologi
         if progress:
             print(f"[{i}/{total}] {topo} at {rate:g} FPS for {duration:g} s ...", flush=True)
         res = run(cfg, out / "runs" / f"{topo}-{rate:g}")
+        if res.interrupted:  # Ctrl-C / SIGTERM stops the bench, not just the run under way
+            raise KeyboardInterrupt(f"interrupted during {topo} at {rate:g} FPS")
         row = summarise(res.report, topo, rate, duration)
         runs.append(row)
         if progress:
@@ -197,6 +199,8 @@ def scaling(config: str | None, frames: int, out: Path, backbone: str | None,
     print(f"scaling: {frames} frames lossless ...", flush=True)
     run_dir = out / "runs" / f"scaling-{frames}"
     res = run(cfg, run_dir)
+    if res.interrupted:
+        raise KeyboardInterrupt("interrupted during the scaling run")
     rows = _scaling_rows(run_dir / "stats.jsonl", step)
     final_rss = sum(st.get("rss_mb", 0.0) for st in _one_per_worker(res.report))
     out_rows = {"frames": res.report["frames_out"], "frames_in": res.report["frames_in"],

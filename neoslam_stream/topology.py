@@ -2,7 +2,7 @@
 
 Topologies (DESIGN.md): ``pipeline`` runs one process per stage connected by zenoh pub/sub;
 ``monolithic`` runs every stage in one process, in sequence, and like the original blocking NeoSLAM
-discards frames that arrive while it is busy except the newest (an image ring of capacity 1).
+discards frames that arrive while it is busy except the newest (a small drop-oldest image ring).
 Both host the very same stage adapters.
 
 Every child is a zenoh peer that listens on its own loopback port and connects to all processes

@@ -31,7 +31,7 @@ def test_emulated_paper_example(tmp_path, topology):
         "run": {"pipeline": "emulated", "topology": topology, "mode": "realtime", "live": False,
                 "drain_s": 0.0},
         "source": {"kind": "emulated", "rate": RATE, "pacing": "fixed", "duration": duration},
-        "emulated": {"tau_ms": TAUS}})
+        "emulated": {"tau_ms": TAUS}, "bus": {"capacity": {"image": 1}}})
     report = run(cfg, tmp_path).report
     # expectations from the paper's equations, not from the code
     if topology == "pipeline":

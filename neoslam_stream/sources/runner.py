@@ -243,7 +243,7 @@ def run_source(spec: SourceRunSpec) -> None:
 
     # the clock starts when the first frame is ready: a source's first frame can be slow (loading,
     # building caches), and a schedule started earlier would make it catch up in a burst, which a
-    # real-time ring of capacity 1 turns into lost frames
+    # small real-time ring turns into lost frames
     t0: float | None = None
     stamp0: float | None = None
     n_sent = 0

@@ -18,7 +18,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from neoslam_stream.config import load_config  # noqa: E402
 from neoslam_stream.evaluation import evaluate_run  # noqa: E402
-from neoslam_stream.topology import run  # noqa: E402
+from neoslam_stream.launch import run  # noqa: E402
 
 
 def main() -> None:

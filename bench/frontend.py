@@ -19,14 +19,13 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from nordland import DATA, run_frontend  # noqa: E402
 from timing import p50  # noqa: E402
 
-from stages.features import VisualFeatureExtractor  # noqa: E402
-from stages.projector import BinaryProjector  # noqa: E402
-from stages.spatial_view import SpatialViewCells  # noqa: E402
+from neoslam_stream.algorithms.features import VisualFeatureExtractor  # noqa: E402
+from neoslam_stream.algorithms.projector import BinaryProjector  # noqa: E402
+from neoslam_stream.algorithms.spatial_view import SpatialViewCells  # noqa: E402
+from neoslam_stream.datasets.nordland import DATA, run_frontend  # noqa: E402
 
 
 def bench_a(backbone: str, reps: int, batch: int, threads: int) -> tuple[float, float]:
@@ -89,7 +88,7 @@ def bench_d_compaction(k: int) -> float:
 
 
 SVC = dict(theta_alpha=384, theta_rho=3, exclude_recent_intervals=3)
-#: the protocol of tests/test_frontend_nordland.py (see bench/nordland.py and docs/frontend.md)
+#: the protocol of tests/test_frontend_nordland.py (see neoslam_stream/datasets/nordland.py and docs/frontend.md)
 PROTOCOL = dict(tolerance=150, min_std=10.0)
 
 
@@ -129,15 +128,10 @@ def nordland(step_main: int, step_side: int) -> dict:
     agreement = _agreement(runs["efficientnet_lite0_centred_gaussian_side_calibrated"],
                            runs["efficientnet_lite0_centred_sparse_side_calibrated"])
     tie = {}
-    try:
-        import stages.neocortex  # noqa: F401
-    except Exception as exc:  # the TM comparison needs stage C
-        tie = {"skipped": f"stages.neocortex not importable: {exc}"}
-    else:
-        for rule in ("lowest", "random"):
-            rs = run_frontend("efficientnet_lite0", step_side, [cal], neocortex={"tie_break": rule}, **main_cfg)
-            tie[rule] = rs[0]
-            print("Nordland TM", rule, _brief(rs[0]), flush=True)
+    for rule in ("lowest", "random"):
+        rs = run_frontend("efficientnet_lite0", step_side, [cal], neocortex={"tie_break": rule}, **main_cfg)
+        tie[rule] = rs[0]
+        print("Nordland TM", rule, _brief(rs[0]), flush=True)
     main_run = runs["efficientnet_lite0_centred_calibrated"]
     for r in list(runs.values()) + [v for v in tie.values() if isinstance(v, dict)]:
         r.pop("closure_origin", None)

@@ -3,7 +3,7 @@
 Keys: pc_ms_11, pc_ms_21, pc_ms_30 (one pose-cell odometry step, p50), lv_ms_100, lv_ms_1000 (one
 local-view match, iRat-sized 60x20 templates, shift +-4), relax_ms_1k, relax_ms_10k (one relaxation
 after an action, exp_loops 20, a chain of experiences with loop links), tuc_odometry_mean_m,
-tuc_map_mean_m (the TU Chemnitz corridor run, see bench/tuc.py; rigid 2-D alignment), plus details
+tuc_map_mean_m (the TU Chemnitz corridor run, see neoslam_stream/datasets/tuc.py; rigid 2-D alignment), plus details
 and ``tuc_first_point`` (the same errors with the NeoSLAM authors' first-point alignment).
 Run: ``.venv/bin/python bench/ratslam.py``.
 """
@@ -18,17 +18,14 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import tuc  # noqa: E402
 from timing import p50  # noqa: E402
 
-from stages.ratslam.experience_map import ExperienceMap  # noqa: E402
-from stages.ratslam.local_view import LocalViewCells  # noqa: E402
-from stages.ratslam.pose_cells import PoseCellNetwork  # noqa: E402
-
-TUC_SETTINGS = dict(pc=dict(pc_dim_xy=30, pc_cell_x_size=1.0, exp_delta_pc_threshold=2.0),
-                    em=dict(exp_loops=20, exp_initial_em_deg=0), threshold=0.6, min_gap_s=30.0)
+from neoslam_stream.algorithms.ratslam.experience_map import ExperienceMap  # noqa: E402
+from neoslam_stream.algorithms.ratslam.local_view import LocalViewCells  # noqa: E402
+from neoslam_stream.algorithms.ratslam.pose_cells import PoseCellNetwork  # noqa: E402
+from neoslam_stream.datasets import tuc  # noqa: E402
+from neoslam_stream.datasets.tuc import TUC_SETTINGS, first_point_error  # noqa: E402
 
 
 def bench_pc(n: int) -> float:
@@ -61,11 +58,6 @@ def bench_relax(n: int) -> float:
         if i % 100 == 0 and i > 200:
             em.create_link(i, i - 200, 0.0)  # loop closures
     return p50(em.iterate, 10)
-
-
-def first_point_error(est: np.ndarray, ref: np.ndarray) -> np.ndarray:
-    """The NeoSLAM authors' metric (show_em_irat.m): subtract each trajectory's first point, no rotation."""
-    return np.linalg.norm((est - est[0]) - (ref - ref[0]), axis=1)
 
 
 def main() -> None:

@@ -25,7 +25,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from stages.neocortex import Neocortex  # noqa: E402
+from neoslam_stream.algorithms.neocortex import Neocortex  # noqa: E402
 
 HTM_CORE_MEDIAN = {"repeat": 171, "route": 90, "random": 83}
 

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from neoslam_stream.bus import Bus, InputQueue, free_port, open_session, wait_for_peers
+from neoslam_stream.runtime.bus import Bus, InputQueue, free_port, open_session, wait_for_peers
 
 HEADER = struct.Struct("<qd")  # sequence number, send time
 

@@ -1,170 +1,86 @@
-"""Typed run configuration (pydantic) and the YAML loader.
+"""The whole configuration of a run: the runtime's sections plus every algorithm's, and the
+configs that ship with the package (``neoslam_stream/configs/*.yaml``, read with
+importlib.resources, so they work from a wheel and from any directory).
 
-One model per component; ``RunConfig`` composes them. Unknown keys are errors, and a bad value gives
-one clear message naming the field (``ConfigError``). Algorithm sections are the stage modules' own
-config models, so their defaults live next to the algorithm they describe.
+``load_config("default")`` (a shipped name), ``load_config("my.yaml")`` (a file) or
+``load_config(None)`` (the models' defaults, which equal the paper's / reference code's values).
 """
 
 from __future__ import annotations
 
+from importlib import resources
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
-import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, Field
 
-CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
+from .algorithms.features import FeatureConfig
+from .algorithms.neocortex import NeocortexConfig
+from .algorithms.projector import ProjectorConfig
+from .algorithms.ratslam.experience_map import ExperienceMapConfig
+from .algorithms.ratslam.local_view import LocalViewConfig
+from .algorithms.ratslam.pose_cells import PoseCellConfig
+from .algorithms.ratslam.visual_odometry import VisualOdometryConfig
+from .algorithms.spatial_view import SpatialViewConfig
+from .runtime.config import ConfigError, RunConfig, load_yaml_config
 
-
-class ConfigError(ValueError):
-    """A configuration file or value is invalid; the text names the field and the problem."""
-
-
-class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
-
-
-#: input queue capacity per topic unless configured (see BusConfig.capacity)
-DEFAULT_CAPACITY = {"image": 2, "odom": 256, "groundtruth": 256, "pose_cells/action": 256}
+__all__ = ["ConfigError", "FullRunConfig", "config_model", "load_config", "packaged_configs",
+           "packaged_config_text"]
 
 
-class BusConfig(Strict):
-    """zenoh transport. Every process of a run listens on its own loopback port (assigned
-    automatically on ``host``) and connects to the others; ``listen``/``connect`` add endpoints,
-    e.g. ``connect: [tcp/10.0.0.2:7447]`` for a zenoh router that links several hosts."""
+class FullRunConfig(RunConfig):
+    """The runtime's sections plus every algorithm's (defaults = the paper's / reference code's)."""
 
-    host: str = "127.0.0.1"
-    listen: list[str] = Field(default_factory=list)
-    connect: list[str] = Field(default_factory=list)
-    #: zenoh shared memory for large payloads. Off by default: at camera rates its gain is ~0.2 ms
-    #: per 260 KB message, but its first use in each process stalls the pipeline for tens of ms,
-    #: which lost the 2nd and 3rd frame of every real-time run at 30 FPS (docs/performance.md)
-    shm: bool = False
-    #: a zenoh json5 config file for settings neoslam does not make itself (TLS certificates,
-    #: access control; see docs/reliability.md); neoslam's endpoints, mode and scouting-off apply on top
-    zenoh_config: str | None = None
-    #: input queue capacity per topic (real-time: ring, drop-oldest; lossless: FIFO, blocks).
-    #: image 2: the newest frame plus one, so that a stage stalled for up to two frame periods
-    #: (9 processes share 2 cores) loses nothing; with 1, 2 of 9001 frames were lost at 30 FPS in
-    #: 5 minutes (docs/performance.md). odom is tiny and needed for path integration, so deep.
-    capacity: dict[str, int] = Field(default_factory=lambda: dict(DEFAULT_CAPACITY))
-    default_capacity: int = Field(2, ge=1)
-    #: lossless mode: the source runs at most this many frames ahead of the final topic
-    window: int = Field(8, ge=1)
-
-    @field_validator("zenoh_config")
-    @classmethod
-    def _exists(cls, v: str | None) -> str | None:
-        if v is not None and not Path(v).is_file():
-            raise ValueError(f"zenoh config file {v} does not exist")
-        return str(Path(v).resolve()) if v is not None else None
-
-    @field_validator("capacity")
-    @classmethod
-    def _positive(cls, v: dict[str, int]) -> dict[str, int]:
-        bad = {k: c for k, c in v.items() if c < 1}
-        if bad:
-            raise ValueError(f"capacities must be >= 1: {bad}")
-        return {**DEFAULT_CAPACITY, **v}  # naming one topic keeps the others' defaults
-
-
-class SourceConfig(Strict):
-    """Where frames come from. ``kind`` names a registered source (see ``SOURCES``)."""
-
-    kind: str = "synthetic"
-    params: dict[str, Any] = Field(default_factory=dict)
-    #: auto: recorded timing for real-time runs of recorded data, as fast as possible when lossless
-    pacing: Literal["auto", "fixed", "recorded", "asap"] = "auto"
-    rate: float | None = Field(None, gt=0)
-    rate_multiplier: float = Field(1.0, gt=0)
-    max_frames: int | None = Field(None, ge=1)
-    duration: float | None = Field(None, gt=0)
-
-
-class EmulatedConfig(Strict):
-    """The paper's worked example: service times of the emulated stages (ms)."""
-
-    tau_ms: list[float] = Field(default_factory=lambda: [50.0, 280.0, 20.0, 350.0])
-    busy: bool = False
-
-
-class RunSection(Strict):
-    pipeline: str = "emulated"
-    topology: Literal["pipeline", "monolithic"] = "pipeline"
-    #: lossless: nothing dropped, source back-pressured; realtime: drop-oldest rings
-    mode: Literal["lossless", "realtime"] = "lossless"
-    out: str = "runs"
-    name: str | None = None
-    seed: int = 42
-    #: threads per stage (torch/BLAS/numba); stages not named get 1
-    threads: dict[str, int] = Field(default_factory=dict)
-    live: bool = True
-    #: real-time mode: after the source ends, let frames in flight finish for this long
-    drain_s: float = Field(2.0, ge=0)
-    startup_timeout: float = Field(300.0, gt=0)
-    max_restarts: int = Field(3, ge=0)
-    max_batch: int = Field(8, ge=1)
-    log_level: str = "WARNING"
-    #: save every stage's state every N source frames (0 = never); see docs/reliability.md
-    checkpoint_every: int = Field(0, ge=0)
-
-
-class RunConfig(Strict):
-    run: RunSection = Field(default_factory=RunSection)
-    bus: BusConfig = Field(default_factory=BusConfig)
-    source: SourceConfig = Field(default_factory=lambda: SourceConfig(kind="emulated", params={"frames": None}))
-    emulated: EmulatedConfig = Field(default_factory=EmulatedConfig)
-
-
-def _format_error(exc: ValidationError, origin: str) -> str:
-    parts = []
-    for err in exc.errors():
-        loc = ".".join(str(p) for p in err["loc"]) or "<root>"
-        parts.append(f"{loc}: {err['msg']}")
-    return f"invalid configuration {origin}: " + "; ".join(parts)
-
-
-def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None,
-                model: type[BaseModel] | None = None) -> Any:
-    """Load YAML (or the defaults when ``path`` is None), apply nested ``overrides``, validate."""
-    model = model or config_model()
-    data: dict[str, Any] = {}
-    origin = "(defaults)"
-    if path is not None:
-        p = Path(path)
-        if not p.exists() and not p.suffix and (CONFIG_DIR / f"{p}.yaml").exists():
-            p = CONFIG_DIR / f"{p}.yaml"
-        if not p.is_file():
-            raise ConfigError(f"config file {path} not found (names in {CONFIG_DIR} work too: "
-                              f"{', '.join(sorted(q.stem for q in CONFIG_DIR.glob('*.yaml')))})")
-        origin = str(p)
-        try:
-            loaded = yaml.safe_load(p.read_text()) or {}
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"{p} is not valid YAML: {exc}") from None
-        if not isinstance(loaded, dict):
-            raise ConfigError(f"{p} must hold a mapping at the top level")
-        data = loaded
-    if overrides:
-        data = _merge(data, overrides)
-    try:
-        return model.model_validate(data)
-    except ValidationError as exc:
-        raise ConfigError(_format_error(exc, origin)) from None
-
-
-def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
-    out = dict(base)
-    for k, v in over.items():
-        if isinstance(v, dict) and isinstance(out.get(k), dict):
-            out[k] = _merge(out[k], v)
-        else:
-            out[k] = v
-    return out
+    features: FeatureConfig = Field(default_factory=FeatureConfig)
+    projector: ProjectorConfig = Field(default_factory=ProjectorConfig)
+    neocortex: NeocortexConfig = Field(default_factory=NeocortexConfig)
+    spatial_view: SpatialViewConfig = Field(default_factory=SpatialViewConfig)
+    pose_cells: PoseCellConfig = Field(default_factory=PoseCellConfig)
+    experience_map: ExperienceMapConfig = Field(default_factory=ExperienceMapConfig)
+    local_view: LocalViewConfig = Field(default_factory=lambda: LocalViewConfig(
+        template_x_size=60, template_y_size=20, vt_shift_match=4, vt_step_match=1))
+    visual_odometry: VisualOdometryConfig = Field(default_factory=VisualOdometryConfig)
+    #: wheel: odometry from the source; visual: RatSLAM's visual odometry stage
+    odometry: str = Field("wheel", pattern="^(wheel|visual)$")
 
 
 def config_model() -> type[BaseModel]:
     """The full run config model: the runtime's sections plus the algorithm sections."""
-    from .pipelines import FullRunConfig
-
     return FullRunConfig
+
+
+def _configs_dir() -> Any:
+    return resources.files("neoslam_stream") / "configs"
+
+
+def packaged_configs() -> list[str]:
+    """Names of the configs that ship with the package (``default``, ``irat2011``, ...)."""
+    return sorted(f.name[:-5] for f in _configs_dir().iterdir() if f.name.endswith(".yaml"))
+
+
+def packaged_config_text(name: str) -> str:
+    """The YAML text of a shipped config."""
+    f = _configs_dir() / f"{name}.yaml"
+    if not f.is_file():
+        raise ConfigError(f"no shipped config named {name!r} (shipped: {', '.join(packaged_configs())})")
+    return f.read_text()
+
+
+def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None,
+                model: type[BaseModel] | None = None) -> Any:
+    """Load a YAML file, or a shipped config by name (``default``, ``irat2011``...), or the
+    defaults when ``path`` is None; apply nested ``overrides``; validate. A file of that name in
+    the current directory wins over a shipped config."""
+    model = model or config_model()
+    if path is None:
+        return load_yaml_config(None, "(defaults)", model, overrides)
+    p = Path(path)
+    if p.is_file():
+        return load_yaml_config(p.read_text(), str(p), model, overrides)
+    name = p.stem if p.suffix == ".yaml" and p.parent == Path(".") else str(path)
+    if not p.suffix or p.suffix == ".yaml":
+        if name in packaged_configs():
+            return load_yaml_config(packaged_config_text(name), f"{name}.yaml (shipped with neoslam_stream)",
+                                    model, overrides)
+    raise ConfigError(f"config file {path} not found (shipped configs work by name too: "
+                      f"{', '.join(packaged_configs())})")

@@ -46,7 +46,7 @@ def bench_config(config: str | None, topology: str, mode: str, backbone: str | N
     if backbone:
         over["features"] = {"backbone": backbone}
     if overrides:
-        from .config import _merge
+        from .runtime.config import _merge
 
         over = _merge(over, overrides)
     return load_config(config or "default", over)
@@ -112,7 +112,7 @@ def sustainable(runs: list[dict[str, Any]], topology: str) -> float | None:
 def rate_sweep(config: str | None, rates: list[float], duration: float, topologies: list[str], out: Path,
                backbone: str | None, overrides: dict[str, Any] | None = None,
                progress: bool = True) -> list[dict[str, Any]]:
-    from .topology import run
+    from .launch import run
 
     runs = []
     total = len(rates) * len(topologies)
@@ -151,14 +151,19 @@ def _scaling_rows(stats_path: Path, step: int) -> list[dict[str, Any]]:
         next_mark = (done // step + 1) * step
         info = {n: st.get("info") or {} for n, st in stages.items()}
         rss_by_worker: dict[str, float] = {}
-        for n, st in stages.items():  # stages sharing a worker share its RSS: count each once
+        pss_by_worker: dict[str, float | None] = {}
+        for n, st in stages.items():  # stages sharing a worker share its memory: count each once
             rss_by_worker[str(st.get("worker", n))] = st.get("rss_mb") or 0.0
+            pss_by_worker[str(st.get("worker", n))] = st.get("pss_mb")
+        pss = list(pss_by_worker.values())
         rows.append({
             "frames": done, "t_s": snap["t_s"],
             "tau_recent_p50_ms": {n: st.get("tau_recent_p50_ms") for n, st in stages.items()},
             "tau_recent_p95_ms": {n: st.get("tau_recent_p95_ms") for n, st in stages.items()},
             "rss_mb": {n: st.get("rss_mb") for n, st in stages.items()},
             "rss_total_mb": sum(rss_by_worker.values()),
+            # PSS counts pages shared between the processes (libraries) once in the sum
+            "pss_total_mb": sum(pss) if pss and None not in pss else None,
             "tm_segments": info.get("C", {}).get("segments"), "tm_synapses": info.get("C", {}).get("synapses"),
             "svc_intervals": info.get("D", {}).get("intervals"), "svc_templates": info.get("D", {}).get("templates"),
             "svc_query_ms": stages.get("D", {}).get("tau_recent_p50_ms"),
@@ -187,11 +192,11 @@ def _fit_rss(rows: list[dict[str, Any]], at: int) -> float | None:
 def scaling(config: str | None, frames: int, out: Path, backbone: str | None,
             overrides: dict[str, Any] | None = None, step: int = SCALING_STEP) -> dict[str, Any]:
     """A long lossless pipeline run; the curve of tau, RSS and state sizes every 1000 frames."""
-    from .topology import run
+    from .launch import run
 
     over = {"source": {"params": {"frames": frames, "loop": True}}}
     if overrides:
-        from .config import _merge
+        from .runtime.config import _merge
 
         over = _merge(overrides, over)
     cfg = bench_config(config, "pipeline", "lossless", backbone, over)
@@ -206,6 +211,7 @@ def scaling(config: str | None, frames: int, out: Path, backbone: str | None,
     out_rows = {"frames": res.report["frames_out"], "frames_in": res.report["frames_in"],
                 "loss": res.report["loss"], "f_out": res.report["f_out"], "step": step,
                 "rss_total_mb_end": final_rss, "rss_total_mb_at_100k_extrapolated": _fit_rss(rows, 100_000),
+                "pss_total_mb_end": res.report.get("memory", {}).get("pss_total_mb"),
                 "tau_p50_ms_end": {n: st.get("tau_p50_ms") for n, st in res.report["stages"].items()},
                 "curve": rows}
     return out_rows

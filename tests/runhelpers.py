@@ -11,8 +11,8 @@ from typing import Any
 
 import yaml
 
-from neoslam_stream.bus import key_for, open_session
-from neoslam_stream.messages import decode
+from neoslam_stream.runtime.bus import key_for, open_session
+from neoslam_stream.runtime.messages import decode
 
 
 def start_run(tmp_path: Path, cfg: dict[str, Any], *args: str, run_dir: Path | None = None) -> subprocess.Popen:

@@ -5,7 +5,7 @@ import time
 
 import pytest
 
-from neoslam_stream.bus import Bus, InputQueue, free_port, open_session, wait_for_peers
+from neoslam_stream.runtime.bus import Bus, InputQueue, free_port, open_session, wait_for_peers
 
 pytestmark = pytest.mark.zenoh
 

@@ -4,14 +4,26 @@ from pathlib import Path
 
 import pytest
 
-from neoslam_stream.config import load_config
+from neoslam_stream.config import ConfigError, load_config, packaged_configs
 
-CONFIGS = sorted((Path(__file__).resolve().parents[1] / "configs").glob("*.yaml"))
+# the YAML files in the source tree: every one of them must ship (and validate)
+CONFIGS = sorted((Path(__file__).resolve().parents[1] / "neoslam_stream" / "configs").glob("*.yaml"))
+
+
+def test_every_config_file_ships():
+    assert len(CONFIGS) >= 6
+    assert packaged_configs() == [p.stem for p in CONFIGS]
 
 
 @pytest.mark.parametrize("path", CONFIGS, ids=[p.stem for p in CONFIGS])
 def test_config_validates(path):
     load_config(path)
+    load_config(path.stem)  # by name, through importlib.resources
+
+
+def test_unknown_config_name_lists_the_shipped_ones():
+    with pytest.raises(ConfigError, match="irat2011"):
+        load_config("no_such_config")
 
 
 def test_dataset_values():

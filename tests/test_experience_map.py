@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from stages.ratslam.experience_map import ExperienceMap
-from stages.ratslam.pose_cells import CREATE_EDGE, CREATE_NODE
+from neoslam_stream.algorithms.ratslam.experience_map import ExperienceMap
+from neoslam_stream.algorithms.ratslam.pose_cells import CREATE_EDGE, CREATE_NODE
 
 
 def test_dead_reckoning_places_nodes():
@@ -116,42 +116,55 @@ def test_state_round_trip():
 
 
 def _action(frame, action, src, dst, vtrans=1.0, vrot=0.0, dt=1.0):
-    from neoslam_stream.messages import Message
+    from neoslam_stream.runtime.messages import Message
 
     return Message("pose_cells/action", frame, float(frame),
                    {"action": action, "src_id": src, "dst_id": dst, "relative_rad": 0.0,
                     "vtrans": vtrans, "vrot": vrot, "dt": dt})
 
 
-def test_stage_publishes_a_pose_per_action_and_the_map_at_flush(tmp_path):
+def test_node_publishes_a_pose_per_action_and_the_map_at_flush(tmp_path):
     import json
 
-    from neoslam_stream.messages import decode, encode
-    from stages.ratslam.adapters import ExperienceMapStage
+    from neoslam_stream.nodes.ratslam import ExperienceMapNode
+    from neoslam_stream.nodes.recorder import RecorderNode
+    from neoslam_stream.runtime.messages import decode, encode
 
-    st = ExperienceMapStage(exp_initial_em_deg=0, exp_loops=0)
-    st.run_dir = str(tmp_path)
+    st = ExperienceMapNode(exp_initial_em_deg=0, exp_loops=0)
+    rec = RecorderNode()
+    rec.run_dir = str(tmp_path)
     msgs = [_action(0, CREATE_NODE, 0, 0), _action(1, 0, 0, 0), _action(2, CREATE_NODE, 0, 1),
             _action(3, CREATE_NODE, 1, 7)]  # id 7: a CREATE_NODE with a skipped id is fine
-    poses = [st.process("pose_cells/action", m)[0][1] for m in msgs]
+    poses = []
+    for m in msgs:
+        (topic, pose), = st.process("pose_cells/action", m)
+        rec.process(topic, pose)
+        poses.append(pose)
     # pose = current experience + dead reckoning since: 1 m along +x per message
     assert [p["pose"][0] for p in poses] == pytest.approx([1.0, 2.0, 3.0, 4.0])
     assert [p["exp_id"] for p in poses] == [0, 0, 1, 7]
     out = st.flush()
     assert [t for t, _ in out] == ["experience_map/map"]
-    m = decode(encode(out[0][1]))
+    m = decode(encode(out[0][1]))  # the whole map crosses the wire, its export included
     np.testing.assert_allclose(m["nodes"][:, :3], [[0, 1, 0], [1, 3, 0], [7, 4, 0]])
     assert m["links"].tolist() == [[0, 1], [1, 7]]
+    rec.process(out[0][0], m)
+    rec.flush()
     saved = json.loads((tmp_path / "map.json").read_text())
     assert [n["id"] for n in saved["nodes"]] == [0, 1, 7] and len(saved["links"]) == 2
-    assert len((tmp_path / "trajectory.tum").read_text().splitlines()) == 4
+    tum = (tmp_path / "trajectory.tum").read_text().splitlines()
+    assert [float(line.split()[1]) for line in tum] == pytest.approx([1.0, 2.0, 3.0, 4.0])
 
 
-def test_stage_refuses_actions_without_odometry():
-    from neoslam_stream.messages import Message
-    from neoslam_stream.stage import StageInputError
-    from stages.ratslam.adapters import ExperienceMapStage
+def test_actions_without_odometry_are_refused_by_the_topic_schema():
+    from neoslam_stream.nodes.topics import POSE_CELL_ACTION
+    from neoslam_stream.runtime.messages import Message, MessageError, encode
 
+    assert {"vtrans", "vrot", "dt"} <= set(POSE_CELL_ACTION.schema)
     bad = Message("pose_cells/action", 0, 0.0, {"action": 1, "src_id": 0, "dst_id": 0})
-    with pytest.raises(StageInputError):
-        ExperienceMapStage().process("pose_cells/action", bad)
+    with pytest.raises(MessageError, match="vtrans"):
+        encode(bad)
+    nan = Message("pose_cells/action", 0, 0.0, {"action": 1, "src_id": 0, "dst_id": 0, "vtrans": float("nan"),
+                                                "vrot": 0.0, "dt": 1.0})
+    with pytest.raises(MessageError, match="not finite"):
+        encode(nan)

@@ -4,9 +4,10 @@ import numpy as np
 import pytest
 import torch
 
-from neoslam_stream.messages import Message
-from neoslam_stream.stage import StageInputError
-from stages import features as F
+from neoslam_stream.algorithms import features as F
+from neoslam_stream.nodes import features as FN
+from neoslam_stream.runtime.messages import Message
+from neoslam_stream.runtime.node import StageInputError
 
 
 @pytest.fixture(scope="module")
@@ -35,8 +36,13 @@ def test_crop_disabled_leaves_image_whole():
 
 def test_crop_outside_image_is_a_clear_error():
     fx = F.VisualFeatureExtractor(backbone="random_alexnet", crop_image=True, x_min=0, x_max=100)
-    with pytest.raises(StageInputError, match="does not fit"):
+    with pytest.raises(F.InvalidImage, match="does not fit"):
         fx.crop_array(np.zeros((10, 20, 3), np.uint8))
+    # the node turns it into a counted bad input of that frame
+    node = FN.make_node(backbone="random_alexnet", crop_image=True, x_min=0, x_max=100)
+    node.setup()
+    with pytest.raises(StageInputError, match="does not fit"):
+        node.process("image", Message("image", 0, 0.0, {"image": np.zeros((10, 20, 3), np.uint8)}))
 
 
 def test_output_is_conv3_pre_relu_64896(rand_fx):
@@ -123,14 +129,16 @@ def test_auto_falls_back_to_efficientnet_lite0(tmp_path, monkeypatch):
 
 
 def test_efficientnet_state_dict_loads_strictly():
-    net = F.EfficientNetLite0()
+    from neoslam_stream.algorithms.backbones import EfficientNetLite0
+
+    net = EfficientNetLite0()
     state = torch.load(F.efficientnet_lite0_weights(), map_location="cpu", weights_only=True)
     missing = net.load_state_dict(state, strict=True)
     assert not missing.missing_keys and not missing.unexpected_keys
 
 
 def test_stage_strides_and_reports_backbone():
-    st = F.make_stage(backbone="random_alexnet", frame_stride=2)
+    st = FN.make_node(backbone="random_alexnet", frame_stride=2)
     st.setup()
     msgs = [Message("image", i, i * 0.1, {"image": np.zeros((32, 32, 3), np.uint8), "encoding": "rgb8"})
             for i in range(5)]
@@ -143,7 +151,7 @@ def test_stage_strides_and_reports_backbone():
 
 
 def test_stage_rejects_corrupt_jpeg():
-    st = F.make_stage(backbone="random_alexnet")
+    st = FN.make_node(backbone="random_alexnet")
     st.setup()
     bad = Message("image", 0, 0.0, {"compressed": b"\xff\xd8\xff\xe0garbage", "format": "jpeg"})
     with pytest.raises(StageInputError, match="corrupt|truncated"):
@@ -152,7 +160,7 @@ def test_stage_rejects_corrupt_jpeg():
 
 def test_failed_batch_does_not_count_strided_frames():
     # the worker retries a failed batch frame by frame; strided frames must be counted once
-    st = F.make_stage(backbone="random_alexnet", frame_stride=2)
+    st = FN.make_node(backbone="random_alexnet", frame_stride=2)
     st.setup()
     good = [Message("image", i, 0.0, {"image": np.zeros((16, 16, 3), np.uint8)}) for i in (1, 3)]
     bad = Message("image", 2, 0.0, {"compressed": b"not an image", "format": "jpeg"})

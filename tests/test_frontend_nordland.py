@@ -5,7 +5,7 @@ places), places where either season's frame is featureless (grey-level std < 10:
 left out of both passes -> 417 places, 834 frames. Stage B centres the features with a running mean
 (``centre_window`` 100, see docs/frontend.md), and D's theta_sigma is calibrated on the summer pass
 alone (99.9th percentile of overlaps between summer frames of different places). C is the real
-Temporal Memory when ``stages.neocortex`` imports, else the pass-through (cell 0 of each column).
+Temporal Memory.
 
 Why the assertions:
 
@@ -20,14 +20,9 @@ Why the assertions:
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-DATA = ROOT / ".." / "shared" / "data" / "nordland_64x32"
-sys.path.insert(0, str(ROOT / "bench"))
+from neoslam_stream.datasets.nordland import DATA, run_frontend
 
 pytestmark = [pytest.mark.slow,
               pytest.mark.skipif(not (DATA / "summer").is_dir(),
@@ -37,20 +32,11 @@ SVC = dict(theta_alpha=384, theta_rho=3, exclude_recent_intervals=3)
 STEP, MIN_STD, TOLERANCE, WINDOW = 8, 10.0, 150, 100
 
 
-def _neocortex() -> str:
-    try:
-        import stages.neocortex  # noqa: F401
-    except Exception:  # the neocortex stage is optional for the front end
-        return "passthrough"
-    return "tm"
-
-
 @pytest.fixture(scope="module")
 def efficientnet_runs():
-    from nordland import run_frontend
-
+    # the real Temporal Memory (stage C): an error in it fails this test, never a silent stand-in
     return run_frontend("efficientnet_lite0", STEP, [{**SVC, "theta_sigma": None}, {**SVC, "theta_sigma": 470}],
-                        tolerance=TOLERANCE, neocortex=_neocortex(), centre_window=WINDOW, min_std=MIN_STD)
+                        tolerance=TOLERANCE, neocortex="tm", centre_window=WINDOW, min_std=MIN_STD)
 
 
 def test_efficientnet_front_end_recognises_places_across_seasons(efficientnet_runs):
@@ -77,7 +63,6 @@ def test_paper_theta_sigma_closes_a_subset(efficientnet_runs):
 
 
 def test_random_alexnet_is_flagged_and_carries_no_place_information():
-    from nordland import run_frontend
 
     run = run_frontend("random_alexnet", STEP, [{**SVC, "theta_sigma": None}], tolerance=TOLERANCE,
                        neocortex="passthrough", centre_window=WINDOW, min_std=MIN_STD)[0]

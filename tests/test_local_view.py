@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from neoslam_stream.messages import Message
-from stages.ratslam.adapters import LocalViewStage, PoseCellsStage
-from stages.ratslam.local_view import LocalViewCells
+from neoslam_stream.algorithms.ratslam.local_view import LocalViewCells
+from neoslam_stream.nodes.ratslam import LocalViewNode, PoseCellsNode
+from neoslam_stream.runtime.messages import Message
 
 
 def test_template_is_block_means_ignoring_leftovers():
@@ -43,7 +43,7 @@ def test_panoramic_relative_rad():
 
 
 def test_local_view_stage_flags_revisits():
-    st = LocalViewStage(template_x_size=8, template_y_size=4, vt_shift_match=1, vt_step_match=1)
+    st = LocalViewNode(template_x_size=8, template_y_size=4, vt_shift_match=1, vt_step_match=1)
     rng = np.random.default_rng(2)
     a, b = (rng.integers(0, 256, (16, 32, 3), dtype=np.uint8) for _ in range(2))
     outs = [st.process("image", Message("image", i, 0.0, {"image": im, "encoding": "rgb8"}))[0][1]
@@ -65,7 +65,7 @@ def test_pose_cells_stage_is_order_independent():
     orders = [events, events[6:] + events[:6], [e for pair in zip(events[:6], events[6:], strict=True) for e in pair]]
     results = []
     for order in orders:
-        st = PoseCellsStage()
+        st = PoseCellsNode()
         out = []
         for topic, m in order:
             out += st.process(topic, m)

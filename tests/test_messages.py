@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from neoslam_stream.messages import (
+from neoslam_stream.runtime.messages import (
     MAX_MESSAGE_BYTES,
     SCHEMA_VERSION,
     Message,

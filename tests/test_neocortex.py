@@ -3,9 +3,10 @@
 import numpy as np
 import pytest
 
-from neoslam_stream.messages import Message
-from neoslam_stream.stage import StageInputError
-from stages.neocortex import Neocortex, make_stage
+from neoslam_stream.algorithms.neocortex import Neocortex
+from neoslam_stream.nodes.neocortex import make_node as make_stage
+from neoslam_stream.runtime.messages import Message
+from neoslam_stream.runtime.node import StageInputError
 
 
 def _inputs(n, seed=0):
@@ -75,7 +76,7 @@ def test_no_sequence_context_with_neoslam_parameters(tie_break):
 
 
 def test_stage_state_survives_a_checkpoint_file(tmp_path):
-    from neoslam_stream.checkpoint import load_state_file, save_state_file
+    from neoslam_stream.runtime.checkpoint import load_state_file, save_state_file
 
     a, b = make_stage(tie_break="random"), make_stage(tie_break="random")
     xs = _inputs(30, seed=4)

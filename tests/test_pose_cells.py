@@ -5,7 +5,13 @@ import math
 import numpy as np
 import pytest
 
-from stages.ratslam.pose_cells import CREATE_EDGE, CREATE_NODE, NO_ACTION, SET_NODE, PoseCellNetwork
+from neoslam_stream.algorithms.ratslam.pose_cells import (
+    CREATE_EDGE,
+    CREATE_NODE,
+    NO_ACTION,
+    SET_NODE,
+    PoseCellNetwork,
+)
 
 
 def delta_net(compat=False, **kw):
@@ -228,7 +234,7 @@ def test_state_round_trip():
 
 
 def _odom(f, dt=0.1):
-    from neoslam_stream.messages import Message
+    from neoslam_stream.runtime.messages import Message
 
     data = {"vtrans": 0.5, "vrot": 0.1}
     if dt is not None:
@@ -237,15 +243,15 @@ def _odom(f, dt=0.1):
 
 
 def _tmpl(f, vt):
-    from neoslam_stream.messages import Message
+    from neoslam_stream.runtime.messages import Message
 
     return Message("visual_template", f, f * 0.1, {"id": vt})
 
 
 def _replay(events, **kw):
-    from stages.ratslam.adapters import PoseCellsStage
+    from neoslam_stream.nodes.ratslam import PoseCellsNode
 
-    st = PoseCellsStage(**kw)
+    st = PoseCellsNode(**kw)
     out = []
     for topic, m in events:
         out += st.process(topic, m)
@@ -273,9 +279,9 @@ def test_stage_with_strided_templates_is_deterministic_and_complete():
 
 
 def test_stage_does_not_wait_forever_for_lost_templates():
-    from stages.ratslam.adapters import PoseCellsStage
+    from neoslam_stream.nodes.ratslam import PoseCellsNode
 
-    st = PoseCellsStage(max_odom_lag=4)
+    st = PoseCellsNode(max_odom_lag=4)
     st.process("visual_template", _tmpl(0, 0))
     out = []
     for f in range(10):  # templates of frames 1.. were dropped
@@ -289,8 +295,8 @@ def test_stage_takes_dt_from_stamps_when_odometry_has_none():
 
 
 def test_stage_refuses_negative_template_ids():
-    from neoslam_stream.stage import StageInputError
-    from stages.ratslam.adapters import PoseCellsStage
+    from neoslam_stream.nodes.ratslam import PoseCellsNode
+    from neoslam_stream.runtime.node import StageInputError
 
     with pytest.raises(StageInputError):
-        PoseCellsStage().process("visual_template", _tmpl(0, -1))
+        PoseCellsNode().process("visual_template", _tmpl(0, -1))

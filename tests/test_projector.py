@@ -3,8 +3,9 @@
 import numpy as np
 import pytest
 
-from neoslam_stream.messages import Message
-from stages import projector as P
+from neoslam_stream.algorithms import projector as P
+from neoslam_stream.nodes import projector as PN
+from neoslam_stream.runtime.messages import Message
 
 
 def test_slsbh_hand_made_vector():
@@ -83,7 +84,7 @@ def test_sparse_projection_density_and_values():
 
 
 def test_stage_batches_and_validates_length():
-    st = P.make_stage(input_dim=100, seed=2)
+    st = PN.make_node(input_dim=100, seed=2)
     st.setup()
     rng = np.random.default_rng(0)
     msgs = [Message("visual_features", i, 0.0, {"features": rng.standard_normal(100).astype(np.float32)})
@@ -91,7 +92,7 @@ def test_stage_batches_and_validates_length():
     out = st.process_batch("visual_features", msgs)
     assert len(out) == 3 and all(m["bits"].size == 512 for _, m in out)
     np.testing.assert_array_equal(out[1][1]["bits"], st.projector.bits(msgs[1]["features"]))
-    from neoslam_stream.stage import StageInputError
+    from neoslam_stream.runtime.node import StageInputError
 
     with pytest.raises(StageInputError):
         st.process("visual_features", Message("visual_features", 9, 0.0, {"features": np.zeros(7, np.float32)}))
@@ -156,8 +157,8 @@ def test_nan_features_are_rejected():
     with pytest.raises(ValueError, match="NaN"):
         bp.bits(bad)
     assert bp.n_seen == 0  # a rejected frame leaves the running mean alone
-    stage = P.make_stage(input_dim=10)
+    stage = PN.make_node(input_dim=10)
     stage.setup()
     msg = Message("visual_features", 3, 0.3, {"features": bad, "backbone": "random_alexnet"})
-    with pytest.raises(P.StageInputError, match="NaN"):
+    with pytest.raises(PN.StageInputError, match="NaN"):
         stage.process("visual_features", msg)

@@ -1,13 +1,9 @@
 """Real drift: the TU Chemnitz corridor run through pose cells + experience map."""
 
-import sys
-from pathlib import Path
-
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-import tuc  # noqa: E402
-from ratslam import TUC_SETTINGS, first_point_error  # noqa: E402
+from neoslam_stream.datasets import tuc
+from neoslam_stream.datasets.tuc import TUC_SETTINGS, first_point_error
 
 pytestmark = pytest.mark.skipif(not tuc.DATA.is_dir(), reason="../shared/data/tuc_slam_odom_loops absent")
 

@@ -12,10 +12,10 @@ import psutil
 import pytest
 from runhelpers import attach, finish, start_run, wait_stats
 
-from neoslam_stream.bus import key_for
 from neoslam_stream.config import ConfigError, load_config
-from neoslam_stream.messages import Message, encode
-from neoslam_stream.topology import run
+from neoslam_stream.launch import run
+from neoslam_stream.runtime.bus import key_for
+from neoslam_stream.runtime.messages import Message, encode
 
 pytestmark = pytest.mark.zenoh
 

@@ -10,19 +10,19 @@ from pathlib import Path
 import msgpack
 import pytest
 
-from neoslam_stream.bus import make_config
 from neoslam_stream.config import ConfigError, load_config
-from neoslam_stream.messages import MAX_MESSAGE_BYTES, MessageError, decode
+from neoslam_stream.runtime.bus import make_config
+from neoslam_stream.runtime.messages import MAX_MESSAGE_BYTES, MessageError, decode
 
 PKG = Path(__file__).resolve().parents[1] / "neoslam_stream"
-STAGES = Path(__file__).resolve().parents[1] / "stages"
 
 
 def test_a_run_listens_on_loopback_only_by_default(tmp_path):
-    from neoslam_stream.topology import Supervisor
+    from neoslam_stream.nodes.pipelines import build_plan
+    from neoslam_stream.runtime.topology import Supervisor
 
     cfg = load_config("default", {"run": {"live": False}})
-    sup = Supervisor(cfg, tmp_path / "run")
+    sup = Supervisor(cfg, build_plan(cfg), tmp_path / "run")
     assert sup.endpoints and all(re.fullmatch(r"tcp/127\.0\.0\.1:\d+", e) for e in sup.endpoints.values())
     for name in sup.order[1:-1]:
         listen, connect = sup._links(name)
@@ -53,23 +53,22 @@ def test_no_code_is_run_from_received_or_stored_data():
     """No pickle, eval or exec anywhere received bytes or files are read: msgpack with one
     registered extension type (arrays), YAML through safe_load, checkpoints in msgpack."""
     offenders = []
-    for root in (PKG, STAGES):
-        for path in root.rglob("*.py"):
-            text = path.read_text()
-            for pattern in (r"\bpickle\.loads?\(", r"(?<![.\w])eval\(", r"(?<![.\w])exec\(", r"yaml\.load\(", r"torch\.load\((?![^)]*weights_only=True)"):
-                if re.search(pattern, text):
-                    offenders.append(f"{path.name}: {pattern}")
+    for path in PKG.rglob("*.py"):
+        text = path.read_text()
+        for pattern in (r"\bpickle\.loads?\(", r"(?<![.\w])eval\(", r"(?<![.\w])exec\(", r"yaml\.load\(", r"torch\.load\((?![^)]*weights_only=True)"):
+            if re.search(pattern, text):
+                offenders.append(f"{path.name}: {pattern}")
     assert offenders == []
 
 
 def test_config_paths_are_validated_with_clear_errors(tmp_path):
     with pytest.raises(ConfigError, match="not found"):
         load_config(tmp_path / "missing.yaml")
-    from stages.features import VisualFeatureExtractor
+    from neoslam_stream.algorithms.features import VisualFeatureExtractor
 
     with pytest.raises(FileNotFoundError, match="nowhere.pth"):
         VisualFeatureExtractor(backbone="alexnet", weights_path=str(tmp_path / "nowhere.pth"))
-    from stages.projector import BinaryProjector
+    from neoslam_stream.algorithms.projector import BinaryProjector
 
     bad = tmp_path / "randomMatrix.bin"
     bad.write_bytes(b"\x00" * 1000)
@@ -78,7 +77,7 @@ def test_config_paths_are_validated_with_clear_errors(tmp_path):
 
 
 def test_a_zenoh_config_file_adds_settings_but_never_reopens_scouting(tmp_path, monkeypatch):
-    from neoslam_stream.bus import ZENOH_CONFIG_ENV
+    from neoslam_stream.runtime.bus import ZENOH_CONFIG_ENV
 
     f = tmp_path / "zenoh.json5"
     f.write_text('{ metadata: { name: "robot1" }, scouting: { multicast: { enabled: true } } }')

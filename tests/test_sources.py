@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from neoslam_stream.bus import free_port, open_session
 from neoslam_stream.evaluation import write_tum
+from neoslam_stream.runtime.bus import free_port, open_session
 from neoslam_stream.sources import cdr
 from neoslam_stream.sources.bag import BagSource
 from neoslam_stream.sources.files import ImageFolderSource, VideoSource

@@ -3,8 +3,9 @@
 import numpy as np
 import pytest
 
-from neoslam_stream.messages import Message
-from stages.spatial_view import SpatialViewCells, make_stage
+from neoslam_stream.algorithms.spatial_view import SpatialViewCells
+from neoslam_stream.nodes.spatial_view import make_node as make_stage
+from neoslam_stream.runtime.messages import Message
 
 
 def sdr(*bits):
@@ -116,17 +117,25 @@ def test_invalid_sdr_is_rejected():
         c.compute(np.array([1, 300]))
 
 
-def test_stage_emits_templates_and_writes_csv(tmp_path):
+def test_node_emits_templates_and_the_recorder_writes_them(tmp_path):
+    from neoslam_stream.nodes.recorder import RecorderNode
+
     st = make_stage(theta_alpha=3, theta_rho=2, theta_sigma=4, exclude_recent_intervals=1, sdr_size=256)
-    st.run_dir = str(tmp_path)
+    rec = RecorderNode()
+    rec.run_dir = str(tmp_path)
     outs = []
     for f, i in enumerate([0, 1, 2, 1]):
-        outs += st.process("sdr", Message("sdr", f, f * 0.1, {"cells": block(i), "size": 256}))
+        out = st.process("sdr", Message("sdr", f, f * 0.1, {"cells": block(i), "size": 256}))
+        for topic, m in out:
+            rec.process(topic, m)
+        outs += out
     assert [m["id"] for _, m in outs] == [0, 1, 2, 1]
     assert outs[-1][1]["is_loop_closure"] is True
-    st.flush()
+    rec.flush()
     lines = (tmp_path / "templates.csv").read_text().splitlines()
-    assert lines[0].startswith("frame,stamp,template_id,is_loop_closure") and lines[4].startswith("3,")
+    assert lines[0] == "frame,stamp,template_id,is_loop_closure,best_interval,best_score"
+    # frame 3 revisits block 1 (interval 1): template 1, a closure, its score |block 1| = 6 cells
+    assert lines[4] == "3,0.300000,1,1,1,6"
 
 
 def _brute_force(frames, theta_alpha, theta_rho, theta_sigma, omega):
@@ -160,7 +169,7 @@ def _brute_force(frames, theta_alpha, theta_rho, theta_sigma, omega):
 
 
 def test_index_compaction_gives_the_same_templates_as_a_brute_force_scan(monkeypatch):
-    import stages.spatial_view as sv
+    import neoslam_stream.algorithms.spatial_view as sv
 
     # compact after every few frames, so scores come from the CSR part, the linked part and both
     monkeypatch.setattr(sv, "COMPACT_MIN", 40)

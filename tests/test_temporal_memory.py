@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from stages.temporal_memory import TemporalMemory
+from neoslam_stream.algorithms.temporal_memory import TemporalMemory
 
 
 def tiny(**kw):
@@ -185,7 +185,7 @@ def test_save_load_mid_stream_gives_identical_outputs():
 
 
 def test_mt19937_matches_std_mt19937():
-    from stages.temporal_memory import _mt_next, _mt_seed
+    from neoslam_stream.algorithms.temporal_memory import _mt_next, _mt_seed
 
     mt = _mt_seed(np.uint32(42))
     idx = np.array([624], dtype=np.int64)

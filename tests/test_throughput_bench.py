@@ -79,3 +79,19 @@ def test_smoke_run_writes_throughput_json(tmp_path, capsys):
     assert sc["frames"] == 150 and sc["loss"] == 0.0  # lossless
     assert (out / "throughput.png").stat().st_size > 0
     assert "Processed Frames" in capsys.readouterr().out
+
+
+def test_report_memory_counts_each_worker_once_and_sums_pss():
+    from neoslam_stream.runtime.monitor import FinalTracker, build_report
+
+    def st(pss, rss):
+        return {"time": 10.0, "started": 0.0, "pss_mb": pss, "rss_mb": rss, "inputs": {}}
+
+    # the recorder shares the experience map's process: its figures are that process's, counted once
+    stats = {"source": {"frames_in": 0}, "A": st(300.0, 500.0), "experience_map": st(80.0, 200.0),
+             "recorder": st(80.0, 200.0)}
+    workers = {"A": ["A"], "experience_map": ["experience_map", "recorder"]}
+    mem = build_report(stats, FinalTracker(), workers, {})["memory"]
+    assert mem == {"rss_total_mb": 700.0, "pss_total_mb": 380.0, "workers": 2}
+    stats["A"]["pss_mb"] = None  # a platform without PSS: no made-up total
+    assert build_report(stats, FinalTracker(), workers, {})["memory"]["pss_total_mb"] is None

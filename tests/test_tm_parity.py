@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from stages.neocortex import Neocortex
-from stages.temporal_memory import TemporalMemory
+from neoslam_stream.algorithms.neocortex import Neocortex
+from neoslam_stream.algorithms.temporal_memory import TemporalMemory
 
 TRACES = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "htm_tm_traces"
 

@@ -5,9 +5,9 @@ import math
 import numpy as np
 import pytest
 
-from neoslam_stream.messages import Message
-from stages.ratslam.adapters import VisualOdometryStage
-from stages.ratslam.visual_odometry import VisualOdometry, best_shift, profile
+from neoslam_stream.algorithms.ratslam.visual_odometry import VisualOdometry, best_shift, profile
+from neoslam_stream.nodes.ratslam import VisualOdometryNode
+from neoslam_stream.runtime.messages import Message
 
 
 def test_profile_is_column_mean_of_the_window_scaled_to_one():
@@ -77,7 +77,7 @@ def test_real_frame_interval_fixes_rotation_after_a_dropped_frame():
 
 
 def test_stage_publishes_odometry_with_image_intervals():
-    st = VisualOdometryStage(camera_fov_deg=50, camera_hz=10)
+    st = VisualOdometryNode(camera_fov_deg=50, camera_hz=10)
     img = np.tile((np.sin(np.linspace(0, 20, 200)) * 100 + 120)[None], (30, 1)).astype(np.uint8)
     frames = [img, np.roll(img, 4, axis=1)]
     outs = [st.process("image", Message("image", i, 0.1 * i, {"image": f}))[0][1] for i, f in enumerate(frames)]
@@ -85,4 +85,4 @@ def test_stage_publishes_odometry_with_image_intervals():
     assert (outs[0]["vtrans"], outs[0]["vrot"]) == (0.0, 0.0)
     assert outs[1]["dt"] == pytest.approx(0.1) and outs[1]["vrot"] == pytest.approx(math.radians(10.0))
     with pytest.raises(ValueError):  # StageInputError: the window is outside a tiny frame
-        VisualOdometryStage(vtrans_image_y_min=50).process("image", Message("image", 0, 0.0, {"image": img}))
+        VisualOdometryNode(vtrans_image_y_min=50).process("image", Message("image", 0, 0.0, {"image": img}))

@@ -1,8 +1,8 @@
 """Decoding ROS 2 messages as zenoh-bridge-ros2dds delivers them: raw CDR with its 4-byte header.
 
 ``parse_image`` is a small zero-copy parser for sensor_msgs/msg/Image (the pixel array is a view on
-the payload; about 10x faster than rosbags' generic deserialiser on 640x480 frames, see
-bench/sources.py); other types go through rosbags' CDR deserialiser. Big-endian and XCDR2
+the payload, far cheaper than rosbags' generic deserialiser: bench/sources.py measures both);
+other types go through rosbags' CDR deserialiser. Big-endian and XCDR2
 payloads, unknown types and unsupported encodings raise :class:`CdrError` with the cause.
 """
 

@@ -10,8 +10,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..evaluation import read_tum
-from ..imageinfo import too_large, truncation
+from ..runtime.imageinfo import too_large, truncation
+from ..tum import read_tum
 from .bag import interpolate_pose
 from .base import Source, SourceFrame
 

@@ -24,9 +24,9 @@ from collections import deque
 from collections.abc import Iterator
 from typing import Any
 
-from ..bus import open_session
-from ..messages import MessageError
-from ..messages import decode as decode_message
+from ..runtime.bus import open_session
+from ..runtime.messages import MessageError
+from ..runtime.messages import decode as decode_message
 from .base import Source, SourceFrame
 from .cdr import CdrError, decode
 

@@ -25,7 +25,7 @@ import msgpack
 import numpy as np
 
 from neoslam_stream.evaluation import write_tum
-from neoslam_stream.messages import MAX_MESSAGE_BYTES, Message, encode
+from neoslam_stream.runtime.messages import MAX_MESSAGE_BYTES, Message, encode
 from neoslam_stream.sources.synthetic import SyntheticWorldSource
 
 #: frame numbers of injected messages: far from the real ones, so none can pass for a real frame

@@ -1,0 +1,275 @@
+"""Stage B: binary projector — Gaussian random projection then sLSBH.
+
+``d = P f`` with P of shape 1024 x n, i.i.d. N(0, 1) float32 entries generated deterministically from
+``seed`` in row chunks (no float64 copy ever exists; 265 MB for n = 64896), or memory-mapped from the
+ROS 2 NeoSLAM's raw ``.bin`` (row-major float32 (n, 1024), no header, exactly n*1024*4 bytes: that
+file holds P transposed, so ``d = f @ P_bin``). We store P transposed too, (n, 1024), so both sources
+share one code path and a single-frame product reads the matrix once, sequentially.
+
+sLSBH with s = 25 % (Neubert's sparsified LSBH, as in the paper): bits [0, 1024) mark the 256 largest
+components of d, bits [1024, 2048) the 256 smallest; exactly 512 bits; ties broken by the lower
+index. Output: sorted uint16 bit indices.
+
+Difference from the ROS 2 C++ on purpose: its two ``partial_sort`` calls mark the 256 smallest in
+the first half and ranks 256..511 in the second, never the largest values; we follow the paper.
+
+``projection: sparse`` is Li et al.'s very sparse random projection (entries +-sqrt(1/density) with
+density 1/sqrt(n), zero otherwise), seeded, as a scipy.sparse matrix: ~1/255 of the work.
+
+``centre_window`` W > 0 (off by default, i.e. the paper) subtracts a running mean of the features
+before projecting: m_t = m_{t-1} + (f_t - m_{t-1}) / min(t, W), d = P (f_t - m_t). CNN feature
+vectors share a large common component, so without it the sLSBH codes of *unrelated* images already
+overlap in ~235 of 512 bits on Nordland (128 for independent codes) and a cross-season revisit
+(~280) hardly stands out; centred, unrelated images overlap in ~128 bits and revisits in ~180. This
+is the online form of the feature standardisation of Schubert, Neubert & Protzel (ICRA 2020). The
+running mean is the projector's state (``state_dict``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import numba
+import numpy as np
+from numba import njit, prange
+from pydantic import BaseModel, ConfigDict, Field
+
+from ._config import make_config
+
+N_PROJ = 1024
+N_BITS = 2 * N_PROJ
+_CHUNK_ROWS = 4096
+
+
+class ProjectorConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    projection: Literal["gaussian", "sparse"] = "gaussian"
+    #: input dimension n (set by the pipeline from the feature backbone)
+    input_dim: int = Field(64896, ge=1)
+    seed: int = 42
+    #: ROS 2 NeoSLAM randomMatrix.bin to load instead of generating (gaussian only)
+    matrix_path: str | None = None
+    sparsity: float = Field(0.25, gt=0, lt=0.5)
+    #: running-mean window W for feature centring; 0 = off (the paper)
+    centre_window: int = Field(0, ge=0)
+    threads: int = Field(1, ge=1)
+
+
+def gaussian_matrix(n: int, seed: int, m: int = N_PROJ) -> np.ndarray:
+    """(n, m) float32 N(0,1), filled row chunk by row chunk from one seeded stream."""
+    rng = np.random.default_rng(seed)
+    out = np.empty((n, m), dtype=np.float32)
+    for start in range(0, n, _CHUNK_ROWS):
+        stop = min(n, start + _CHUNK_ROWS)
+        rng.standard_normal((stop - start, m), dtype=np.float32, out=out[start:stop])
+    return out
+
+
+def load_bin(path: str | Path, n: int, m: int = N_PROJ) -> np.ndarray:
+    """Memory-map a ROS 2 NeoSLAM ``randomMatrix.bin`` (row-major float32 (n, m), no header)."""
+    p = Path(path)
+    expected = n * m * 4
+    size = p.stat().st_size
+    if size != expected:
+        raise ValueError(f"{p} has {size} bytes; a float32 ({n}, {m}) matrix has {expected}")
+    return np.memmap(p, dtype="<f4", mode="r", shape=(n, m))
+
+
+def save_bin(matrix: np.ndarray, path: str | Path) -> None:
+    """Write (n, m) float32 row-major without header (the ROS 2 NeoSLAM format)."""
+    np.ascontiguousarray(matrix, dtype="<f4").tofile(str(path))
+
+
+def sparse_matrix(n: int, seed: int, m: int = N_PROJ) -> Any:
+    """Very sparse random projection (n, m): entries +-sqrt(1/density) with density 1/sqrt(n)."""
+    import scipy.sparse as sp
+
+    density = 1.0 / np.sqrt(n)
+    rng = np.random.default_rng(seed)
+    rows_l, cols_l = [], []
+    for j in range(m):  # column by column: no (n, m) temporary
+        k = rng.binomial(n, density)
+        rows_l.append(rng.choice(n, size=k, replace=False))
+        cols_l.append(np.full(k, j))
+    rows, cols = np.concatenate(rows_l), np.concatenate(cols_l)
+    nnz = rows.size
+    vals = np.where(rng.random(nnz) < 0.5, -1.0, 1.0).astype(np.float32) * np.float32(np.sqrt(1.0 / density))
+    return sp.csr_matrix((vals, (rows, cols)), shape=(n, m), dtype=np.float32)
+
+
+#: W's rows are summed in this many fixed halves (one per thread at most); a constant, not the
+#: thread count, so the bits do not depend on how many threads a deployment gives B.
+PROJECTION_CHUNKS = 2
+
+
+@njit(parallel=True, cache=True)
+def _project_rows(F, W, out):  # pragma: no cover - compiled
+    """out[r] = F[r] @ W with a summation order that depends on nothing but n.
+
+    BLAS rounds a matrix-vector product differently from a matrix-matrix one, so a frame's bits
+    would depend on how many frames were batched with it; here every output element is the sum of
+    PROJECTION_CHUNKS partial sums over fixed row ranges of W, each accumulated four rows at a time
+    in order, so results are identical for any batch size and thread count (lossless runs are
+    repeatable). The product is bound by memory bandwidth (265 MB of W per pass): each block of four
+    rows of W is read once for the whole batch (micro-batching amortises it), and the two halves
+    run on two threads when B has them.
+    """
+    n, m = W.shape
+    b = F.shape[0]
+    nchunk = PROJECTION_CHUNKS
+    step = ((n + nchunk - 1) // nchunk + 3) // 4 * 4
+    part = np.zeros((nchunk, b, m), np.float32)
+    for c in prange(nchunk):
+        lo = c * step
+        hi = min(n, (c + 1) * step)
+        i = lo
+        while i + 4 <= hi:
+            w0 = W[i]
+            w1 = W[i + 1]
+            w2 = W[i + 2]
+            w3 = W[i + 3]
+            for r in range(b):
+                acc = part[c, r]
+                a0 = F[r, i]
+                a1 = F[r, i + 1]
+                a2 = F[r, i + 2]
+                a3 = F[r, i + 3]
+                for j in range(m):
+                    acc[j] += (a0 * w0[j] + a1 * w1[j]) + (a2 * w2[j] + a3 * w3[j])
+            i += 4
+        while i < hi:
+            w0 = W[i]
+            for r in range(b):
+                acc = part[c, r]
+                a0 = F[r, i]
+                for j in range(m):
+                    acc[j] += a0 * w0[j]
+            i += 1
+    for r in range(b):
+        for j in range(m):
+            total = part[0, r, j]
+            for c in range(1, nchunk):
+                total += part[c, r, j]
+            out[r, j] = total
+
+
+@njit(cache=True)
+def _slsbh_rows(D, k, out):  # pragma: no cover - compiled
+    """sLSBH of every row of D into out (b, 2k), the same rule as :func:`slsbh`."""
+    m = D.shape[1]
+    for r in range(D.shape[0]):
+        desc = np.argsort(-D[r], kind="mergesort")[:k]
+        asc = np.argsort(D[r], kind="mergesort")[:k]
+        out[r, :k] = np.sort(desc)
+        out[r, k:] = np.sort(asc) + m
+
+
+def slsbh(d: np.ndarray, sparsity: float = 0.25) -> np.ndarray:
+    """sLSBH bits of one projected vector: sorted uint16 indices, exactly 2*round(m*sparsity).
+
+    Bit j (j < m) marks d_j among the k largest, bit m+j marks d_j among the k smallest; ties are
+    broken by the lower index (stable sorts).
+    """
+    d = np.asarray(d)
+    if d.ndim != 1:
+        raise ValueError(f"expected a 1-D vector, got shape {d.shape}")
+    m = d.shape[0]
+    k = int(round(m * sparsity))
+    order_desc = np.argsort(-d, kind="stable")[:k]
+    order_asc = np.argsort(d, kind="stable")[:k]
+    bits = np.concatenate([np.sort(order_desc), np.sort(order_asc) + m]).astype(np.uint16)
+    return bits
+
+
+class BinaryProjector:
+    """float32[n] -> 512 sorted bit indices of 2048 (see module docstring)."""
+
+    def __init__(self, config: ProjectorConfig | None = None, **overrides: Any) -> None:
+        cfg = self.config = make_config(ProjectorConfig, config, overrides)
+        self.threads = cfg.threads
+        self.input_dim = cfg.input_dim
+        self.projection = projection = cfg.projection
+        self.sparsity = cfg.sparsity
+        self.seed = seed = cfg.seed
+        self.centre_window = cfg.centre_window
+        self.mean = np.zeros(cfg.input_dim, dtype=np.float64)
+        self.n_seen = 0
+        input_dim, matrix_path = cfg.input_dim, cfg.matrix_path
+        if projection == "gaussian":
+            self.matrix = load_bin(matrix_path, input_dim) if matrix_path else gaussian_matrix(input_dim, seed)
+        elif projection == "sparse":
+            if matrix_path:
+                raise ValueError("matrix_path is only for the gaussian projection")
+            self.matrix = sparse_matrix(input_dim, seed)
+            # P as CSR (m, n): one pass over its rows per frame is cheaper than P^T's columns
+            self._sparse_rows = self.matrix.T.tocsr()
+        else:
+            raise ValueError(f"unknown projection {projection!r} (gaussian or sparse)")
+
+    def _check(self, feats: np.ndarray) -> np.ndarray:
+        f = np.asarray(feats, dtype=np.float32)
+        if f.ndim not in (1, 2) or f.shape[-1] != self.input_dim:
+            raise ValueError(f"features of shape {f.shape}, projector expects ({self.input_dim},) or (b, {self.input_dim})")
+        if not np.all(np.isfinite(f)):
+            raise ValueError("features contain NaN or infinite values")
+        return f
+
+    def centre(self, feats: np.ndarray) -> np.ndarray:
+        """Subtract the running mean m_t (updated with each row, in order) when ``centre_window`` > 0.
+
+        Frame by frame, so the result does not depend on how frames were batched.
+        """
+        f = self._check(feats)
+        if not self.centre_window:
+            return f
+        rows = np.atleast_2d(f)
+        out = np.empty_like(rows)
+        for r, row in enumerate(rows):
+            self.n_seen += 1
+            self.mean += (row - self.mean) / min(self.n_seen, self.centre_window)
+            out[r] = row - self.mean
+        return out[0] if f.ndim == 1 else out
+
+    def project(self, feats: np.ndarray) -> np.ndarray:
+        """d = P f: (n,) or (b, n) features -> (1024,) or (b, 1024) float32 (no centring)."""
+        f = self._check(feats)
+        rows = np.ascontiguousarray(np.atleast_2d(f))
+        if self.projection == "sparse":
+            out = np.asarray((self._sparse_rows @ rows.T).T, dtype=np.float32)
+        else:
+            out = np.empty((rows.shape[0], self.matrix.shape[1]), dtype=np.float32)
+            numba.set_num_threads(min(self.threads, numba.config.NUMBA_NUM_THREADS))
+            _project_rows(rows, self.matrix, out)
+        return out[0] if f.ndim == 1 else out
+
+    def bits(self, feats: np.ndarray) -> np.ndarray:
+        """One feature vector -> its sLSBH bits (centring first when enabled)."""
+        return self.bits_batch(np.atleast_2d(self._check(feats)))[0]
+
+    def bits_batch(self, feats: np.ndarray) -> list[np.ndarray]:
+        """(b, n) features -> b arrays of sorted uint16 bit indices; one pass over P."""
+        d = np.ascontiguousarray(self.project(self.centre(np.atleast_2d(feats))))
+        k = int(round(d.shape[1] * self.sparsity))
+        out = np.empty((d.shape[0], 2 * k), dtype=np.int64)
+        _slsbh_rows(d, k, out)
+        return list(out.astype(np.uint16))
+
+    def warm_up(self) -> None:
+        """Compile the numba kernels now (not on the first frame), without touching the running mean."""
+        self.project(np.zeros(self.input_dim, np.float32))
+        k = int(round(N_PROJ * self.sparsity))
+        _slsbh_rows(np.zeros((1, N_PROJ), np.float32), k, np.empty((1, 2 * k), np.int64))
+
+    def state_dict(self) -> dict[str, Any]:
+        """The running mean (the matrix is not state: it is regenerated from the seed or file)."""
+        return {"centre_window": self.centre_window, "mean": self.mean.copy(), "n_seen": self.n_seen}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        mean = np.asarray(state["mean"], dtype=np.float64)
+        if mean.shape != (self.input_dim,):
+            raise ValueError(f"saved running mean has shape {mean.shape}, expected ({self.input_dim},)")
+        self.centre_window = int(state["centre_window"])
+        self.mean = mean.copy()
+        self.n_seen = int(state["n_seen"])

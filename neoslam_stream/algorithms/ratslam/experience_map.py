@@ -1,0 +1,332 @@
+"""RatSLAM experience map: experiences (nodes), links, dead reckoning and graph relaxation.
+
+As OpenRatSLAM: odometry is integrated into ``accum_dx/dy`` (absolute heading ``accum_facing``,
+starting at exp_initial_em_deg) since the current experience; CREATE_NODE places a node at the
+current one plus that displacement and links them; CREATE_EDGE links the current experience to an
+existing one (no duplicate in either direction); both then make the destination current (resetting
+the accumulators, heading = node heading + relative_rad). After every action the graph is relaxed:
+``exp_loops`` sequential Gauss-Seidel sweeps in node order and link insertion order, each link
+pulling both ends by ``exp_correction`` of its position and heading error.
+
+``openratslam_compat=True`` keeps the C++ quirks that the default fixes:
+
+1. a link's ``delta_time_s`` accumulates without reset (fixed: reset with the other accumulators);
+2. the first experience does not reset the dead-reckoning accumulators (the C++ current id starts
+   at 0, so making node 0 current is a no-op and the second node is placed with the first node's
+   displacement counted twice) (fixed: reset);
+3. CREATE_EDGE draws the link from the action's ``src_id`` although the dead reckoning it stores
+   was accumulated since the map's current experience; the two differ only after a lost action
+   (fixed: the link starts at the current experience).
+
+Experience ids come from the pose cells and are normally 0, 1, 2...; the map keeps its own
+consecutive indices and a table from those ids, so a lost or repeated action never breaks it: a
+CREATE_NODE for a known id, or a link or set to an unknown id, is handled as the nearest sensible
+action (link to the known experience; create the unknown one where dead reckoning puts it).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any
+
+import numpy as np
+from numba import njit
+from pydantic import BaseModel, ConfigDict, Field
+
+from .._config import make_config
+from .pose_cells import CREATE_EDGE, CREATE_NODE, SET_NODE
+
+
+class ExperienceMapConfig(BaseModel):
+    """OpenRatSLAM's experience-map parameters with the C++ code defaults."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    exp_loops: int = Field(10, ge=0)
+    exp_correction: float = 0.5
+    exp_initial_em_deg: float = 90.0
+    openratslam_compat: bool = False
+
+
+def clip_pi(a: float) -> float:
+    """Wrap into (-pi, pi]."""
+    while a > math.pi:
+        a -= 2 * math.pi
+    while a <= -math.pi:
+        a += 2 * math.pi
+    return a
+
+
+def signed_delta(a1: float, a2: float) -> float:
+    """Signed smallest rotation from a1 to a2."""
+    return clip_pi(a2 - a1)
+
+
+@njit(cache=True)
+def _clip(a):  # pragma: no cover - compiled
+    while a > math.pi:
+        a -= 2 * math.pi
+    while a <= -math.pi:
+        a += 2 * math.pi
+    return a
+
+
+@njit(cache=True)
+def _relax(x, y, th, lfrom, lto, ld, lhead, lface, loops, corr):  # pragma: no cover - compiled
+    """exp_loops Gauss-Seidel sweeps: experiences in index order, each one's outgoing links in
+    insertion order (a counting sort of the link list by source keeps that order)."""
+    n = x.shape[0]
+    m = lfrom.shape[0]
+    ptr = np.zeros(n + 1, np.int64)
+    for li in range(m):
+        ptr[lfrom[li] + 1] += 1
+    for i in range(n):
+        ptr[i + 1] += ptr[i]
+    fill = ptr[:n].copy()
+    order = np.empty(m, np.int64)
+    for li in range(m):
+        order[fill[lfrom[li]]] = li
+        fill[lfrom[li]] += 1
+    for _ in range(loops):
+        for e0 in range(n):
+            for p in range(ptr[e0], ptr[e0 + 1]):
+                li = order[p]
+                e1 = lto[li]
+                lx = x[e0] + ld[li] * math.cos(th[e0] + lhead[li])
+                ly = y[e0] + ld[li] * math.sin(th[e0] + lhead[li])
+                dx = (x[e1] - lx) * corr
+                dy = (y[e1] - ly) * corr
+                x[e0] += dx
+                y[e0] += dy
+                x[e1] -= dx
+                y[e1] -= dy
+                df = _clip(th[e1] - (th[e0] + lface[li]))
+                th[e0] = _clip(th[e0] + df * corr)
+                th[e1] = _clip(th[e1] - df * corr)
+
+
+def _grow(a: np.ndarray, n: int) -> np.ndarray:
+    """``a`` with room for at least n rows (capacity doubles, so appends are amortised O(1))."""
+    if n <= a.shape[0]:
+        return a
+    out = np.zeros((max(n, 2 * a.shape[0], 64),) + a.shape[1:], dtype=a.dtype)
+    out[: a.shape[0]] = a
+    return out
+
+
+class ExperienceMap:
+    """OpenRatSLAM's ``ExperienceMap`` driven as ``main_em.cpp`` drives it.
+
+    Per odometry message :meth:`on_odo`; per pose-cell action :meth:`on_action` (which relaxes the
+    graph once). Nodes live in growable numpy arrays (``x``, ``y``, ``th``, ``stamp`` are views)
+    so that relaxation of large maps needs no conversion.
+    """
+
+    def __init__(self, config: ExperienceMapConfig | None = None, **overrides: Any) -> None:
+        self.cfg = self.config = make_config(ExperienceMapConfig, config, overrides)
+        self._nodes = np.zeros((0, 4))  # x, y, th, stamp
+        self._n = 0
+        self._lf = np.zeros((0, 2), dtype=np.int64)  # from, to (indices)
+        self._lv = np.zeros((0, 4))  # d, heading, facing, delta_time_s
+        self._m = 0
+        self.link_set: set[tuple[int, int]] = set()
+        self.ids: list[int] = []  # index -> experience id (as the pose cells number them)
+        self.index: dict[int, int] = {}  # experience id -> index
+        self._cur = -1
+        self.accum_dx = self.accum_dy = self.accum_t = 0.0
+        self.accum_facing = math.radians(self.cfg.exp_initial_em_deg)
+        self.relax_time_s = 0.0
+        self.repaired_actions = 0
+
+    # ---------------------------------------------------------------- views
+    @property
+    def n_experiences(self) -> int:
+        return self._n
+
+    @property
+    def n_links(self) -> int:
+        return self._m
+
+    @property
+    def x(self) -> np.ndarray:
+        return self._nodes[: self._n, 0]
+
+    @property
+    def y(self) -> np.ndarray:
+        return self._nodes[: self._n, 1]
+
+    @property
+    def th(self) -> np.ndarray:
+        return self._nodes[: self._n, 2]
+
+    @property
+    def stamp(self) -> np.ndarray:
+        return self._nodes[: self._n, 3]
+
+    @property
+    def links(self) -> list[tuple[int, int, float, float, float, float]]:
+        """(from id, to id, d, heading, facing, delta_time_s) per link, in insertion order."""
+        return [(self.ids[a], self.ids[b], *map(float, v))
+                for (a, b), v in zip(self._lf[: self._m].tolist(), self._lv[: self._m], strict=True)]
+
+    @property
+    def current(self) -> int:
+        """The current experience's id (-1 before the first)."""
+        return self.ids[self._cur] if self._cur >= 0 else -1
+
+    # ---------------------------------------------------------------- odometry and actions
+    def on_odo(self, vtrans: float, vrot: float, dt: float) -> None:
+        """Dead reckoning: rotate first, then advance vtrans*dt along the absolute heading."""
+        if not (math.isfinite(vtrans) and math.isfinite(vrot) and math.isfinite(dt)):
+            raise ValueError(f"odometry must be finite, got vtrans={vtrans} vrot={vrot} dt={dt}")
+        vtrans, vrot = vtrans * dt, vrot * dt
+        self.accum_facing = clip_pi(self.accum_facing + vrot)
+        self.accum_dx += vtrans * math.cos(self.accum_facing)
+        self.accum_dy += vtrans * math.sin(self.accum_facing)
+        self.accum_t += dt
+
+    def _idx(self, exp_id: int) -> int:
+        i = self.index.get(int(exp_id), -1)
+        if i < 0:
+            raise ValueError(f"experience {exp_id} does not exist ({self._n} known)")
+        return i
+
+    def create_experience(self, exp_id: int, stamp: float = 0.0) -> None:
+        """A node at the current experience plus the dead reckoning, linked from it, made current."""
+        exp_id = int(exp_id)
+        if exp_id in self.index:
+            raise ValueError(f"experience {exp_id} exists already")
+        cx, cy = (self._nodes[self._cur, 0], self._nodes[self._cur, 1]) if self._cur >= 0 else (0.0, 0.0)
+        i = self._n
+        self._nodes = _grow(self._nodes, i + 1)
+        self._nodes[i] = (cx + self.accum_dx, cy + self.accum_dy, clip_pi(self.accum_facing), stamp)
+        self._n += 1
+        self.ids.append(exp_id)
+        self.index[exp_id] = i
+        if self._cur >= 0:
+            self._link(self._cur, i, 0.0)
+        self._set(i, 0.0)
+
+    def create_link(self, a: int, b: int, rel_rad: float) -> None:
+        """Link experience a -> b with the dead reckoning since the current experience (OpenRatSLAM:
+        no duplicate in either direction)."""
+        self._link(self._idx(a), self._idx(b), rel_rad)
+
+    def _link(self, a: int, b: int, rel_rad: float) -> None:
+        if a == b or (a, b) in self.link_set or (b, a) in self.link_set:
+            return
+        th_a = float(self._nodes[a, 2])
+        d = math.hypot(self.accum_dx, self.accum_dy)
+        heading = signed_delta(th_a, math.atan2(self.accum_dy, self.accum_dx))
+        facing = signed_delta(th_a, clip_pi(self.accum_facing + rel_rad))
+        j = self._m
+        self._lf, self._lv = _grow(self._lf, j + 1), _grow(self._lv, j + 1)
+        self._lf[j] = (a, b)
+        self._lv[j] = (d, heading, facing, self.accum_t)
+        self._m += 1
+        self.link_set.add((a, b))
+
+    def set_experience(self, exp_id: int, rel_rad: float) -> None:
+        """Make an experience current: zero the accumulators, heading = its heading + rel_rad."""
+        self._set(self._idx(exp_id), rel_rad)
+
+    def _set(self, e: int, rel_rad: float) -> None:
+        if e == self._cur:
+            return
+        if self._cur < 0 and e == 0 and self.cfg.openratslam_compat:
+            # the C++ starts with current id 0, so making the first node current is a no-op and
+            # its dead-reckoning accumulators are never reset (the second node lands twice as far)
+            self._cur = 0
+            return
+        self._cur = e
+        self.accum_dx = self.accum_dy = 0.0
+        if not self.cfg.openratslam_compat:
+            self.accum_t = 0.0
+        self.accum_facing = clip_pi(float(self._nodes[e, 2]) + rel_rad)
+
+    def on_action(self, action: int, src: int, dst: int, rel_rad: float, stamp: float = 0.0) -> None:
+        """Apply one pose-cell action (CREATE_NODE, CREATE_EDGE, SET_NODE) and relax the graph once.
+
+        Actions that do not fit the map (after a lost message) are repaired rather than refused:
+        CREATE_NODE of a known id links to it; CREATE_EDGE or SET_NODE to an unknown id creates it.
+        """
+        if not math.isfinite(rel_rad):
+            raise ValueError(f"relative_rad must be finite, got {rel_rad}")
+        dst, src = int(dst), int(src)
+        if action not in (CREATE_NODE, CREATE_EDGE, SET_NODE):
+            raise ValueError(f"unknown action {action}")
+        if dst not in self.index:
+            self.repaired_actions += int(action != CREATE_NODE)
+            self.create_experience(dst, stamp)
+        elif action in (CREATE_NODE, CREATE_EDGE):
+            self.repaired_actions += int(action == CREATE_NODE)
+            d = self.index[dst]
+            a = self._cur
+            if self.cfg.openratslam_compat and src in self.index:
+                a = self.index[src]
+            if a >= 0:
+                self._link(a, d, rel_rad)
+            self._set(d, rel_rad)
+        else:
+            self._set(self.index[dst], rel_rad)
+        self.iterate()
+
+    def iterate(self) -> None:
+        """One relaxation: exp_loops sequential sweeps with exp_correction (numba)."""
+        if self._m == 0 or self.cfg.exp_loops == 0:
+            return
+        t0 = time.perf_counter()
+        nodes = self._nodes
+        x, y, th = nodes[: self._n, 0].copy(), nodes[: self._n, 1].copy(), nodes[: self._n, 2].copy()
+        lf, lv = self._lf[: self._m], self._lv[: self._m]
+        _relax(x, y, th, np.ascontiguousarray(lf[:, 0]), np.ascontiguousarray(lf[:, 1]),
+               np.ascontiguousarray(lv[:, 0]), np.ascontiguousarray(lv[:, 1]), np.ascontiguousarray(lv[:, 2]),
+               self.cfg.exp_loops, self.cfg.exp_correction)
+        nodes[: self._n, 0], nodes[: self._n, 1], nodes[: self._n, 2] = x, y, th
+        self.relax_time_s = time.perf_counter() - t0
+
+    # ---------------------------------------------------------------- poses and export
+    def current_pose(self) -> tuple[float, float, float]:
+        """The current experience's pose (what OpenRatSLAM publishes as RobotPose)."""
+        if self._cur < 0:
+            return (self.accum_dx, self.accum_dy, self.accum_facing)
+        return tuple(float(v) for v in self._nodes[self._cur, :3])
+
+    def robot_pose(self) -> tuple[float, float, float]:
+        """Current experience plus the dead reckoning since it: a pose for every frame."""
+        if self._cur < 0:
+            return (self.accum_dx, self.accum_dy, self.accum_facing)
+        x, y = self._nodes[self._cur, :2]
+        return (float(x) + self.accum_dx, float(y) + self.accum_dy, self.accum_facing)
+
+    @staticmethod
+    def warm_up() -> None:
+        """Compile (or load from numba's cache) the relaxation kernel before the first frame."""
+        z = np.zeros(2)
+        _relax(z.copy(), z.copy(), z.copy(), np.zeros(1, np.int64), np.ones(1, np.int64), z[:1].copy(),
+               z[:1].copy(), z[:1].copy(), 1, 0.5)
+
+    def export(self) -> dict[str, Any]:
+        """Nodes (id, x, y, theta, creation stamp) and links (from, to, d, heading, facing, dt)."""
+        return {"nodes": [{"id": self.ids[i], "x": float(x), "y": float(y), "theta": float(t), "stamp": float(s)}
+                          for i, (x, y, t, s) in enumerate(self._nodes[: self._n].tolist())],
+                "links": [{"from": a, "to": b, "d": d, "heading": h, "facing": f, "dt": t}
+                          for a, b, d, h, f, t in self.links]}
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"nodes": self._nodes[: self._n].copy(), "ids": np.array(self.ids, dtype=np.int64),
+                "lf": self._lf[: self._m].copy(), "lv": self._lv[: self._m].copy(),
+                "scalars": [self._cur, self.accum_dx, self.accum_dy, self.accum_t, self.accum_facing]}
+
+    def load_state_dict(self, st: dict[str, Any]) -> None:
+        self._nodes = np.array(st["nodes"], dtype=float).reshape(-1, 4)
+        self._n = self._nodes.shape[0]
+        self.ids = [int(v) for v in np.asarray(st["ids"]).reshape(-1)]
+        self.index = {e: i for i, e in enumerate(self.ids)}
+        self._lf = np.array(st["lf"], dtype=np.int64).reshape(-1, 2)
+        self._lv = np.array(st["lv"], dtype=float).reshape(-1, 4)
+        self._m = self._lf.shape[0]
+        self.link_set = {(int(a), int(b)) for a, b in self._lf.tolist()}
+        c, self.accum_dx, self.accum_dy, self.accum_t, self.accum_facing = (float(v) for v in st["scalars"])
+        self._cur = int(c)

@@ -1,0 +1,240 @@
+"""``neoslam`` command line: run, monitor, bench emulate; ``cli.data`` adds compare, evaluate,
+dataset and map, ``cli.bench`` the throughput bench. Thin: each command parses, calls the library
+(launch, evaluation, throughput) and prints."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+from typing import Any
+
+#: what `neoslam run` runs with no --config
+DEFAULT_CONFIG = "default"
+
+
+def _overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
+    over: dict[str, Any] = {"run": {}, "source": {}}
+    if getattr(args, "topology", None):
+        over["run"]["topology"] = args.topology
+    if getattr(args, "mode", None):
+        over["run"]["mode"] = args.mode
+    if getattr(args, "pipeline", None):
+        over["run"]["pipeline"] = args.pipeline
+    if getattr(args, "no_live", False):
+        over["run"]["live"] = False
+    if getattr(args, "checkpoint_every", None):
+        over["run"]["checkpoint_every"] = args.checkpoint_every
+    if getattr(args, "source", None):
+        over["source"]["kind"] = args.source
+    if getattr(args, "source_param", None):
+        params = {}
+        for kv in args.source_param:
+            k, _, v = kv.partition("=")
+            try:
+                params[k] = json.loads(v)
+            except json.JSONDecodeError:
+                params[k] = v
+        over["source"]["params"] = params
+    if getattr(args, "rate", None):
+        over["source"]["rate"] = args.rate
+        over["source"]["pacing"] = "fixed"
+    if getattr(args, "rate_multiplier", None):
+        over["source"]["rate_multiplier"] = args.rate_multiplier
+        over["source"]["pacing"] = "recorded"
+    if getattr(args, "max_frames", None):
+        over["source"]["max_frames"] = args.max_frames
+    if getattr(args, "duration", None):
+        over["source"]["duration"] = args.duration
+    return {k: v for k, v in over.items() if v}
+
+
+def _load(args: argparse.Namespace) -> Any:
+    from ..config import ConfigError, load_config
+
+    try:
+        return load_config(args.config or DEFAULT_CONFIG, _overrides_from_args(args))
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
+
+
+def add_run_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", "-c", help=f"YAML config file, or the name of a shipped config: default, paper datasets... "
+                        f"(`neoslam config list`; default: {DEFAULT_CONFIG})")
+    p.add_argument("--source", help="source kind (synthetic, folder, video, bag, zenoh-ros2, zenoh, emulated)")
+    p.add_argument("--source-param", "-p", action="append", metavar="KEY=VALUE",
+                   help="source parameter, e.g. -p path=data/run1 (repeatable; values parsed as JSON)")
+    p.add_argument("--topology", choices=["pipeline", "monolithic"], help="one process per stage, or one")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--lossless", dest="mode", action="store_const", const="lossless",
+                      help="process every frame; the source is back-pressured (default for recorded data)")
+    mode.add_argument("--realtime", dest="mode", action="store_const", const="realtime",
+                      help="bounded drop-oldest queues; a slow stage never blocks its upstream")
+    p.add_argument("--rate", type=float, help="publish frames at this fixed rate (Hz)")
+    p.add_argument("--rate-multiplier", type=float, help="replay recorded timing sped up by this factor")
+    p.add_argument("--max-frames", type=int, help="stop after this many frames")
+    p.add_argument("--duration", type=float, help="stop after this many seconds")
+    p.add_argument("--out", help="run folder (default: runs/<name>)")
+    p.add_argument("--no-live", action="store_true", help="no live table / progress bar")
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from ..launch import RunError, run
+
+    cfg = _load(args)
+    try:
+        result = run(cfg, args.out, getattr(args, "resume", None), getattr(args, "map", None))
+    except RunError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    print_summary(result.report)
+    run_dir = result.run_dir
+    if (run_dir / "groundtruth.tum").exists() and (run_dir / "trajectory.tum").exists():
+        from ..evaluation import evaluate_run
+
+        ev = evaluate_run(run_dir)
+        print_evaluation(ev)
+    if result.interrupted:  # the shell convention: 128 + the signal (130 for Ctrl-C, 143 for SIGTERM)
+        return 128 + (result.signal or 2)
+    return 0
+
+
+def print_evaluation(ev: dict[str, Any]) -> None:
+    t, o = ev.get("trajectory_ape", {}), ev.get("odometry_ape", {})
+    m = ev.get("map_paper", {})
+    lc = ev.get("loop_closures", {})
+    print(f"trajectory APE mean {t.get('mean_m', float('nan')):.3f} m (max {t.get('max_m', float('nan')):.3f}); "
+          f"odometry APE mean {o.get('mean_m', float('nan')):.3f} m; "
+          f"map nodes {ev.get('map_nodes', 0)}, paper metric mean {m.get('mean_m', float('nan')):.3f} m; "
+          f"loop closures {lc.get('closures')}, precision {lc.get('precision')}")
+    print("evaluation.json and map.png written")
+
+
+def print_summary(report: dict[str, Any]) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    con = Console()
+    t = Table(title=f"run {report.get('run')} ({report.get('topology')}, {report.get('mode')})")
+    for col in ("stage", "processed", "tau p50 ms", "tau p95 ms", "dropped", "errors"):
+        t.add_column(col, justify="right" if col != "stage" else "left")
+    for name, st in report.get("stages", {}).items():
+        if st.get("missing"):
+            t.add_row(name, "missing", "", "", "", "")
+            continue
+        t.add_row(name, str(st["processed"]), f"{st['tau_p50_ms']:.1f}", f"{st['tau_p95_ms']:.1f}",
+                  str(st["dropped"]), str(st["errors"]))
+    con.print(t)
+    fp = report.get("f_pipeline_predicted")
+    con.print(f"frames in {report.get('frames_in')}, out {report.get('frames_out')} "
+              f"(strided {report.get('frames_strided')}), loss {100 * report.get('loss', 0):.1f} %, "
+              f"f_in {report.get('f_in', 0):.2f} Hz, f_out {report.get('f_out', 0):.2f} Hz, "
+              f"f_pipeline {fp if fp is None else round(fp, 2)} Hz (bottleneck {report.get('bottleneck')})")
+    con.print(f"run folder: {report.get('run_dir')}")
+
+
+def cmd_monitor(args: argparse.Namespace) -> int:
+    from ..runtime.monitor import attach
+
+    run, connect = args.run, args.connect or []
+    if args.run_dir:
+        ep = json.loads((Path(args.run_dir) / "endpoints.json").read_text())
+        run, connect = ep["run"], ep["connect"] + connect
+    if not run or not connect:
+        print("error: give a RUN_DIR (with endpoints.json) or --run and --connect", file=sys.stderr)
+        return 2
+    attach(run, connect, duration=args.duration)
+    return 0
+
+
+def cmd_bench_emulate(args: argparse.Namespace) -> int:
+    from ..config import load_config
+    from ..launch import run
+
+    taus = [float(x) for x in args.tau.split(",") if x.strip()]
+    topologies = ["pipeline", "monolithic"] if args.topology == "both" else [args.topology]
+    out = Path(args.out)
+    results = []
+    for topo in topologies:
+        cfg = load_config(None, {
+            "run": {"pipeline": "emulated", "topology": topo, "mode": "realtime", "live": not args.no_live,
+                    "drain_s": 0.0, "name": f"emulate-{topo}"},
+            "source": {"kind": "emulated", "params": {"frames": None}, "rate": args.rate,
+                       "pacing": "fixed", "duration": args.duration},
+            "emulated": {"tau_ms": taus, "busy": args.busy},
+            # the worked example: a busy stage keeps only the newest frame
+            "bus": {"capacity": {"image": 1}}})
+        run_dir = out if len(topologies) == 1 else out / topo
+        res = run(cfg, run_dir)
+        print_summary(res.report)
+        results.append(res.report)
+    if len(results) > 1:
+        (out / "report.json").write_text(json.dumps({"runs": results}, indent=2))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="neoslam", description="NeoSLAM / RatSLAM as a multiprocess zenoh pipeline.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="Examples:\n  neoslam run                        # full NeoSLAM on the synthetic world\n"
+               "  neoslam run -c irat2011 --source bag -p path=irat.db3\n"
+               "  neoslam bench emulate --tau 50,280,20,350 --rate 10 --duration 30 --topology both")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    p_run = sub.add_parser("run", help="run a pipeline (default: NeoSLAM on the synthetic world)",
+                           description="Run a pipeline to the end of its source; writes report.json, "
+                                       "timeline.csv and the stage outputs into the run folder.")
+    add_run_options(p_run)
+    p_run.add_argument("--checkpoint-every", type=int, help="save every stage's state every N frames")
+    p_run.add_argument("--resume", metavar="RUN_DIR", help="resume from the last checkpoint of RUN_DIR")
+    p_run.add_argument("--map", metavar="MAP_FILE",
+                       help="start from a map exported by `neoslam map export` (long-term deployment)")
+    p_run.add_argument("--pipeline", help="pipeline name (neoslam, ratslam, emulated)")
+    p_run.set_defaults(func=cmd_run)
+
+    p_mon = sub.add_parser("monitor", help="attach a live table to a running pipeline",
+                           description="Show the live stats of a running pipeline.")
+    p_mon.add_argument("run_dir", nargs="?", help="run folder of the running pipeline (has endpoints.json)")
+    p_mon.add_argument("--run", help="run id (instead of RUN_DIR)")
+    p_mon.add_argument("--connect", action="append", help="zenoh endpoint to connect to (repeatable)")
+    p_mon.add_argument("--duration", type=float, help="stop after this many seconds")
+    p_mon.set_defaults(func=cmd_monitor)
+
+    p_bench = sub.add_parser("bench", help="benchmarks", description="Benchmarks writing JSON reports.")
+    bsub = p_bench.add_subparsers(dest="bench", metavar="BENCH")
+    p_em = bsub.add_parser("emulate", help="the paper's worked example with emulated stages",
+                           description="Stages with fixed service times through real zenoh processes.")
+    p_em.add_argument("--tau", default="50,280,20,350", help="service times in ms, comma-separated")
+    p_em.add_argument("--rate", type=float, default=10.0, help="input rate (Hz)")
+    p_em.add_argument("--duration", type=float, default=30.0, help="seconds of input")
+    p_em.add_argument("--topology", choices=["pipeline", "monolithic", "both"], default="both")
+    p_em.add_argument("--busy", action="store_true", help="spin instead of sleeping (CPU-bound emulation)")
+    p_em.add_argument("--out", default="bench/results/emulate", help="output folder")
+    p_em.add_argument("--no-live", action="store_true", help="no live table")
+    p_em.set_defaults(func=cmd_bench_emulate)
+    p_bench.set_defaults(func=lambda a: (p_bench.print_help(), 2)[1])
+
+    from . import bench, data
+
+    data.register(sub, bsub)
+    bench.register(sub, bsub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING - 10 * min(args.verbose, 2),
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    if not getattr(args, "func", None):
+        if args.command is None:
+            args = parser.parse_args(["run", *(argv or [])])
+        else:
+            parser.print_help()
+            return 2
+    return int(args.func(args) or 0)

@@ -1,0 +1,125 @@
+"""The TU Chemnitz corridor run through pose cells + experience map (used by bench/ratslam.py and tests).
+
+Wheel odometry (10 Hz: forward speed vx and turn rate wz, as RatSLAM uses them) drives the pose
+cells and the experience map. Visual templates come from the run's loop-closure candidates: every
+time stamp that appears in a candidate is a camera frame; a frame whose best candidate with an
+earlier frame (at least ``min_gap_s`` earlier, similarity >= ``threshold``) exists reuses that
+frame's template id (a place recognised), otherwise it gets a new id. The error of the
+experience-map trajectory and of odometry alone is measured against the 2-D ground truth after
+the same rigid 2-D alignment (rotation + translation, least squares) of each.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from . import data_root
+
+DATA = data_root() / "tuc_slam_odom_loops"
+
+#: the settings of the TUC figures (bench/ratslam.py, tests/test_ratslam_tuc.py)
+TUC_SETTINGS = dict(pc=dict(pc_dim_xy=30, pc_cell_x_size=1.0, exp_delta_pc_threshold=2.0),
+                    em=dict(exp_loops=20, exp_initial_em_deg=0), threshold=0.6, min_gap_s=30.0)
+
+
+def load(limit_s: float | None = None):
+    odom, loops = [], []
+    for line in open(DATA / "Corridor_Input.txt"):
+        p = line.split()
+        if not p:
+            continue
+        if p[0] == "odom2":
+            odom.append((float(p[1]), float(p[2]), float(p[4])))
+        elif p[0] == "loop":
+            loops.append((float(p[1]), float(p[2]), float(p[3])))
+    gt = np.array([[float(v) for v in line.split()[1:4]] for line in open(DATA / "Corridor_GT.txt") if line.strip()])
+    odom = np.array(odom)
+    loops = np.array(loops)
+    if limit_s is not None:
+        odom = odom[odom[:, 0] <= limit_s]
+        loops = loops[loops[:, 0] <= limit_s]
+        gt = gt[gt[:, 0] <= limit_s]
+    return odom, loops, gt
+
+
+def templates_from_loops(loops: np.ndarray, threshold: float, min_gap_s: float) -> dict[float, int]:
+    """time -> template id, in time order."""
+    frames = np.unique(np.concatenate([loops[:, 0], loops[:, 1]]))
+    best: dict[float, tuple[float, float]] = {}
+    for t1, t2, s in loops:
+        later, earlier = max(t1, t2), min(t1, t2)
+        if later - earlier >= min_gap_s and s >= threshold and s > best.get(later, (0, -1))[1]:
+            best[later] = (earlier, s)
+    ids: dict[float, int] = {}
+    n = 0
+    for t in frames:
+        if t in best and best[t][0] in ids:
+            ids[t] = ids[best[t][0]]
+        else:
+            ids[t] = n
+            n += 1
+    return ids
+
+
+def first_point_error(est: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """The NeoSLAM authors' metric (show_em_irat.m): subtract each trajectory's first point, no rotation."""
+    return np.linalg.norm((est - est[0]) - (ref - ref[0]), axis=1)
+
+
+def align_rigid_2d(est: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """Least-squares rotation + translation of est (n,2) onto ref (n,2) (Umeyama without scale)."""
+    mu_e, mu_r = est.mean(0), ref.mean(0)
+    H = (est - mu_e).T @ (ref - mu_r)
+    U, _, Vt = np.linalg.svd(H)
+    D = np.diag([1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    return (est - mu_e) @ R.T + mu_r
+
+
+def run(pc_params: dict, em_params: dict, threshold: float = 0.8, min_gap_s: float = 60.0,
+        limit_s: float | None = None) -> dict:
+    from ..algorithms.ratslam.experience_map import ExperienceMap
+    from ..algorithms.ratslam.pose_cells import PoseCellNetwork
+
+    odom, loops, gt = load(limit_s)
+    ids = templates_from_loops(loops, threshold, min_gap_s)
+    frame_times = np.array(sorted(ids))
+    pc = PoseCellNetwork(**pc_params)
+    em = ExperienceMap(**em_params)
+    fi = 0
+    est, dr = [], []
+    x = y = 0.0
+    th = math.radians(em.cfg.exp_initial_em_deg)
+    prev_t = odom[0, 0]
+    recognised = 0
+    for t, vx, wz in odom:
+        dt = t - prev_t
+        prev_t = t
+        while fi < len(frame_times) and frame_times[fi] <= t:
+            vt = ids[frame_times[fi]]
+            recognised += int(vt in pc.templates)
+            pc.on_view_template(vt, 0.0)
+            fi += 1
+        pc.on_odo(vx, wz, dt)
+        em.on_odo(vx, wz, dt)
+        a, s, d, rr = pc.get_action()
+        if a:
+            em.on_action(a, s, d, rr, t)
+        px, py, _ = em.robot_pose()
+        est.append((t, px, py))
+        th += wz * dt
+        x += vx * dt * math.cos(th)
+        y += vx * dt * math.sin(th)
+        dr.append((t, x, y))
+    est, dr = np.array(est), np.array(dr)
+    idx = np.clip(np.searchsorted(gt[:, 0], est[:, 0]), 0, len(gt) - 1)
+    ref = gt[idx, 1:3]
+    err_map = np.linalg.norm(align_rigid_2d(est[:, 1:], ref) - ref, axis=1)
+    err_odo = np.linalg.norm(align_rigid_2d(dr[:, 1:], ref) - ref, axis=1)
+    return {"steps": len(odom), "frames": len(frame_times), "templates": len(set(ids.values())),
+            "recognised_frames": recognised, "experiences": em.n_experiences, "links": len(em.links),
+            "map_mean_m": float(err_map.mean()), "map_max_m": float(err_map.max()),
+            "odometry_mean_m": float(err_odo.mean()), "odometry_max_m": float(err_odo.max()),
+            "threshold": threshold, "min_gap_s": min_gap_s, "est": est, "odo": dr, "gt": ref}

@@ -1,0 +1,137 @@
+"""Trajectory and map evaluation against ground truth, and the map plot.
+
+* The paper's metric (as the NeoSLAM / OpenRatSLAM2 scripts compute it): for every experience
+  node, the ground-truth sample matched in time; subtract the first point of each sequence (no
+  rotation or scale alignment); per-node Euclidean error; mean and max.
+* APE: per-frame trajectory error after a least-squares SE(2) alignment (Umeyama, no scale) of the
+  estimate onto the ground truth; mean, RMSE and max. Our own implementation (evo is GPL-3.0).
+* Loop closures: precision/recall when ground truth is known (a closure is correct when the
+  matched template was created within ``radius`` metres of the current true position).
+* ``map.png``: experience map, ground truth and odometry in one plot, loop closures marked.
+
+``evaluate_run(run_dir)`` reads a run folder (``trajectory.tum``, ``map.json``, ``templates.csv``,
+``groundtruth.tum``, ``odometry.tum``) and writes ``evaluation.json`` and ``map.png``;
+``neoslam evaluate RUN_DIR [--gt FILE]`` does the same from the command line.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..tum import read_tum, write_tum
+
+__all__ = ["ape", "associate", "evaluate_run", "loop_closure_quality", "paper_metric", "read_tum",
+           "umeyama_se2", "write_tum"]
+
+
+def associate(t_est: np.ndarray, t_ref: np.ndarray, max_dt: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """Indices pairing each estimate time with the nearest reference time within ``max_dt``."""
+    j = np.clip(np.searchsorted(t_ref, t_est), 1, max(1, len(t_ref) - 1))
+    prev = np.clip(j - 1, 0, len(t_ref) - 1)
+    j = np.clip(j, 0, len(t_ref) - 1)
+    best = np.where(np.abs(t_ref[prev] - t_est) <= np.abs(t_ref[j] - t_est), prev, j)
+    ok = np.abs(t_ref[best] - t_est) <= max_dt
+    return np.flatnonzero(ok), best[ok]
+
+
+def umeyama_se2(est: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation R (2x2) and translation t minimising sum |R est + t - ref|^2."""
+    if len(est) < 2:
+        return np.eye(2), (ref.mean(0) - est.mean(0)) if len(est) else np.zeros(2)
+    mu_e, mu_r = est.mean(0), ref.mean(0)
+    H = (est - mu_e).T @ (ref - mu_r)
+    U, _, Vt = np.linalg.svd(H)
+    D = np.diag([1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    return R, mu_r - R @ mu_e
+
+
+def ape(est_xy: np.ndarray, ref_xy: np.ndarray) -> dict[str, float]:
+    R, t = umeyama_se2(est_xy, ref_xy)
+    err = np.linalg.norm(est_xy @ R.T + t - ref_xy, axis=1)
+    return {"mean_m": float(err.mean()), "rmse_m": float(np.sqrt((err ** 2).mean())), "max_m": float(err.max())}
+
+
+def paper_metric(est_xy: np.ndarray, ref_xy: np.ndarray) -> dict[str, float]:
+    """Subtract each sequence's first point, then per-point Euclidean error (mean, max)."""
+    err = np.linalg.norm((est_xy - est_xy[0]) - (ref_xy - ref_xy[0]), axis=1)
+    return {"mean_m": float(err.mean()), "max_m": float(err.max())}
+
+
+def loop_closure_quality(templates_csv: str | Path, gt: np.ndarray, radius: float = 1.0,
+                         min_gap_s: float = 30.0) -> dict[str, Any]:
+    """Precision and recall of the loop closures in ``templates.csv`` against ground truth.
+
+    A template's place is the true position at the first frame that produced it. A closure (a frame
+    with ``is_loop_closure``) is correct when its template's place is within ``radius`` metres of the
+    frame's true position. A frame is a revisit when the robot was within ``radius`` of its true
+    position more than ``min_gap_s`` seconds earlier; recall = revisit frames with a correct closure
+    / revisit frames. Frames without a ground-truth sample within 1 s are left out.
+    """
+    from scipy.spatial import cKDTree
+
+    rows = np.loadtxt(templates_csv, delimiter=",", skiprows=1, ndmin=2)
+    if rows.size == 0:
+        return {"closures": 0, "correct": 0, "precision": None, "recall": None, "revisit_frames": 0,
+                "radius_m": radius}
+    ie, gi = associate(rows[:, 1], gt[:, 0], max_dt=1.0)
+    stamps, ids, loops = rows[ie, 1], rows[ie, 2].astype(int), rows[ie, 3].astype(bool)
+    pos = gt[gi, 1:3]
+    _, first = np.unique(ids, return_index=True)
+    place = dict(zip(ids[first].tolist(), pos[first], strict=True))
+    tpl_pos = np.array([place[t] for t in ids.tolist()]).reshape(-1, 2)
+    correct = loops & (np.linalg.norm(tpl_pos - pos, axis=1) <= radius)
+    earliest = np.array([stamps[nb].min() for nb in cKDTree(pos).query_ball_point(pos, radius)])
+    revisit = earliest < stamps - min_gap_s
+    n_loops, n_rev = int(loops.sum()), int(revisit.sum())
+    return {"closures": n_loops, "correct": int(correct.sum()),
+            "precision": float(correct.sum() / n_loops) if n_loops else None,
+            "recall": float((correct & revisit).sum() / n_rev) if n_rev else None,
+            "revisit_frames": n_rev, "radius_m": radius, "min_gap_s": min_gap_s}
+
+
+def evaluate_run(run_dir: str | Path, gt_path: str | Path | None = None, radius: float = 1.0,
+                 plot: bool = True, walls: np.ndarray | None = None) -> dict[str, Any]:
+    """Evaluate a run folder against ground truth; write ``evaluation.json`` (and ``map.png``).
+
+    ``gt_path`` defaults to ``RUN_DIR/groundtruth.tum``; ``radius`` is the loop-closure correctness
+    radius (m); ``walls`` (n, 2, 2) segments drawn under the plot in ground-truth coordinates, by
+    default the synthetic world's when ``report.json`` says the run's source was ``synthetic``.
+    Returns the dict written to ``evaluation.json`` (keys in docs/evaluation.md).
+    """
+    run_dir = Path(run_dir)
+    gt_file = Path(gt_path) if gt_path else run_dir / "groundtruth.tum"
+    if not gt_file.exists():
+        raise FileNotFoundError(f"no ground truth: {gt_file} (give --gt FILE)")
+    gt = read_tum(gt_file)
+    result: dict[str, Any] = {"ground_truth": str(gt_file)}
+    traj = read_tum(run_dir / "trajectory.tum")
+    ie, ig = associate(traj[:, 0], gt[:, 0])
+    result["trajectory_ape"] = ape(traj[ie, 1:3], gt[ig, 1:3])
+    result["trajectory_paper"] = paper_metric(traj[ie, 1:3], gt[ig, 1:3])
+    mp = json.loads((run_dir / "map.json").read_text()) if (run_dir / "map.json").exists() else {"nodes": []}
+    nodes = np.array([[n["stamp"], n["x"], n["y"]] for n in mp["nodes"]]).reshape(-1, 3)
+    if len(nodes):
+        ne, ng = associate(nodes[:, 0], gt[:, 0], max_dt=1.0)
+        result["map_paper"] = paper_metric(nodes[ne, 1:3], gt[ng, 1:3])
+        result["map_nodes"] = int(len(nodes))
+    odo_file = run_dir / "odometry.tum"
+    if odo_file.exists():
+        odo = read_tum(odo_file)
+        oe, og = associate(odo[:, 0], gt[:, 0])
+        result["odometry_ape"] = ape(odo[oe, 1:3], gt[og, 1:3])
+        result["odometry_paper"] = paper_metric(odo[oe, 1:3], gt[og, 1:3])
+    if (run_dir / "templates.csv").exists():
+        result["loop_closures"] = loop_closure_quality(run_dir / "templates.csv", gt, radius)
+    (run_dir / "evaluation.json").write_text(json.dumps(result, indent=2))
+    if plot:
+        from .plots import plot_map, synthetic_walls
+
+        if walls is None and gt_path is None:
+            walls = synthetic_walls(run_dir)
+        plot_map(run_dir, gt, traj, mp, result, walls)
+    return result

@@ -1,0 +1,105 @@
+"""Plots of runs: the map against ground truth and odometry (map.png), and NeoSLAM vs RatSLAM on
+the same stream (compare.png)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..tum import read_tum
+from . import associate, umeyama_se2
+
+
+def synthetic_walls(run_dir: Path) -> np.ndarray | None:
+    try:
+        kind = json.loads((run_dir / "report.json").read_text()).get("source", {}).get("kind")
+    except (OSError, ValueError, AttributeError):
+        return None
+    if kind != "synthetic":
+        return None
+    from ..sources.synthetic import WALLS
+
+    return WALLS[:, :4].reshape(-1, 2, 2)
+
+
+def plot_map(run_dir: Path, gt: np.ndarray, traj: np.ndarray, mp: dict, result: dict,
+             walls: np.ndarray | None = None) -> None:
+    """``map.png``: ground truth (black), odometry (red) and the experience map (blue nodes and
+    links), each aligned onto the ground truth by SE(2) Umeyama, loop closures as green discs at
+    their true positions, and the world's walls (grey) when known."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    ie, ig = associate(traj[:, 0], gt[:, 0])
+    R, t = umeyama_se2(traj[ie, 1:3], gt[ig, 1:3])
+    fig, ax = plt.subplots(figsize=(7, 6))
+    if walls is not None:
+        from matplotlib.collections import LineCollection
+
+        ax.add_collection(LineCollection(np.asarray(walls), colors="0.6", linewidths=2.0, zorder=0))
+    tpl = run_dir / "templates.csv"
+    if tpl.exists():  # first, so that the paths stay visible on top of them
+        rows = np.loadtxt(tpl, delimiter=",", skiprows=1, ndmin=2)
+        if rows.size:
+            lc = rows[rows[:, 3] > 0]
+            _, gi = associate(lc[:, 1], gt[:, 0], max_dt=1.0)
+            ax.plot(gt[gi, 1], gt[gi, 2], "o", color="limegreen", ms=7, alpha=0.25, mec="none",
+                    label="loop closure (true position)")
+    ax.plot(gt[:, 1], gt[:, 2], "k-", lw=1.5, label="ground truth")
+    odo_file = run_dir / "odometry.tum"
+    if odo_file.exists():
+        odo = read_tum(odo_file)
+        oe, og = associate(odo[:, 0], gt[:, 0])
+        Ro, to = umeyama_se2(odo[oe, 1:3], gt[og, 1:3])
+        o = odo[:, 1:3] @ Ro.T + to
+        ax.plot(o[:, 0], o[:, 1], "r-", lw=0.8, alpha=0.7, label="odometry")
+    nodes = {n["id"]: np.array([n["x"], n["y"]]) @ R.T + t for n in mp.get("nodes", [])}
+    for lk in mp.get("links", []):
+        a, b = nodes.get(lk["from"]), nodes.get(lk["to"])
+        if a is not None and b is not None:
+            ax.plot([a[0], b[0]], [a[1], b[1]], "b-", lw=0.6)
+    if nodes:
+        pts = np.array(list(nodes.values()))
+        ax.plot(pts[:, 0], pts[:, 1], "b.", ms=3, label="experience map")
+    ax.set_aspect("equal")
+    ax.legend(loc="best", fontsize=8)
+    ape_m = result.get("trajectory_ape", {}).get("mean_m", float("nan"))
+    ax.set_title(f"{run_dir.name}: APE mean {ape_m:.2f} m")
+    fig.savefig(run_dir / "map.png", dpi=110, bbox_inches="tight")
+    plt.close(fig)
+
+
+def plot_compare(dirs: dict[str, Path], out: Path) -> None:
+    """``compare.png``: ground truth and each pipeline's trajectory (``dirs``: name -> run folder),
+    each aligned onto the ground truth by SE(2) Umeyama."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 6))
+    first = next(iter(dirs.values()))
+    gt = read_tum(first / "groundtruth.tum") if (first / "groundtruth.tum").exists() else None
+    if gt is not None:
+        ax.plot(gt[:, 1], gt[:, 2], "k-", lw=1.5, label="ground truth")
+    colours = iter(("b", "m", "g", "c", "y"))
+    for name, d in dirs.items():
+        colour = next(colours, "k")
+        f = d / "trajectory.tum"
+        if not f.exists():
+            continue
+        tr = read_tum(f)
+        xy = tr[:, 1:3]
+        if gt is not None:
+            ie, ig = associate(tr[:, 0], gt[:, 0])
+            R, t = umeyama_se2(xy[ie], gt[ig, 1:3])
+            xy = xy @ R.T + t
+        ax.plot(xy[:, 0], xy[:, 1], f"{colour}-", lw=0.8, label=name)
+    ax.set_aspect("equal")
+    ax.legend()
+    fig.savefig(out, dpi=110, bbox_inches="tight")
+    plt.close(fig)

@@ -1,0 +1,27 @@
+"""A run of a named pipeline: the plan from ``nodes.pipelines``, hosted by the runtime's supervisor.
+
+The one place where the runtime (which knows no algorithm) meets the nodes (which know them).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from .runtime.topology import RunError, RunResult, run_plan
+
+__all__ = ["RunError", "RunResult", "run"]
+
+
+def run(cfg: Any, run_dir: str | Path | None = None, resume: str | Path | None = None,
+        map_path: str | Path | None = None) -> RunResult:
+    """Run ``cfg`` (a :class:`~neoslam_stream.config.FullRunConfig`) to the end of its source or
+    until interrupted; returns the report. ``resume``: a run folder to continue from its last
+    complete checkpoint; ``map_path``: an exported map to start from (a new session on an old map)."""
+    from .nodes.pipelines import build_plan
+
+    try:
+        plan = build_plan(cfg)
+    except ValueError as exc:
+        raise RunError(str(exc)) from None
+    return run_plan(cfg, plan, run_dir, resume, map_path)

@@ -1,0 +1,53 @@
+"""Node of stage D: ``sdr`` -> ``visual_template`` (see ``algorithms.spatial_view``)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from ..algorithms.spatial_view import SpatialViewCells, SpatialViewConfig
+from ..runtime.messages import Message
+from ..runtime.node import Node, Output, StageInputError
+from .topics import SDR, VISUAL_TEMPLATE
+
+
+class SpatialViewNode(Node):
+    """``sdr`` -> ``visual_template`` (template id, loop-closure flag, best interval and its score)."""
+
+    inputs = (SDR,)
+    outputs = (VISUAL_TEMPLATE,)
+
+    def __init__(self, **params: Any) -> None:
+        super().__init__()
+        self.cells = SpatialViewCells(SpatialViewConfig(**params))
+        self.loops = 0
+
+    def setup(self) -> None:
+        self.cells.warm_up()
+
+    def process(self, topic: str, msg: Message) -> Output:
+        try:
+            res = self.cells.compute(msg["cells"])
+        except ValueError as exc:
+            raise StageInputError(str(exc)) from None
+        self.loops += res["is_loop_closure"]
+        # best_score stays an int (an overlap count): templates.csv writes it as the algorithm gave it
+        data = {k: res[k] for k in ("id", "is_loop_closure", "best_interval", "relative_rad", "best_score")}
+        return [(VISUAL_TEMPLATE, msg.derive(VISUAL_TEMPLATE, data))]
+
+    def info(self) -> dict[str, Any]:
+        return {"intervals": self.cells.n_intervals, "templates": self.cells.n_templates,
+                "loop_closures": self.loops}
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"cells": self.cells.state_dict(), "loops": self.loops}
+
+    def new_session(self) -> None:
+        self.loops = 0
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.cells.load_state_dict(state["cells"])
+        self.loops = int(state["loops"])
+
+
+def make_node(**params: Any) -> SpatialViewNode:
+    return SpatialViewNode(**params)

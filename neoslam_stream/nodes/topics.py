@@ -1,0 +1,57 @@
+"""The typed topics of the algorithms' nodes (names after the paper where it names them).
+
+Each declaration registers its schema with the codec (``runtime.messages.register_schema``), so
+any process that imports a node validates these messages on decoding; the codec itself knows only
+the runtime's types (``image``, ``odom``, ``groundtruth``, ``stats``, ``control``).
+"""
+
+from __future__ import annotations
+
+from ..runtime.messages import CONTROL, GROUNDTRUTH, IMAGE, ODOM, Field, Topic
+
+__all__ = ["BIN_FEATURES", "CONTROL", "EXPERIENCE_MAP", "EXPERIENCE_POSE", "GROUNDTRUTH", "IMAGE",
+           "ODOM", "POSE_CELL_ACTION", "SDR", "VISUAL_FEATURES", "VISUAL_TEMPLATE"]
+
+_IDX = ("uint16", "uint32", "int32", "int64", "uint64")
+
+#: A's output: the CNN feature vector of one frame (and the backbone that computed it)
+VISUAL_FEATURES = Topic("visual_features", {
+    "features": Field("array", ("float32",), (1,), finite=True),
+    "backbone": Field("str", optional=True),
+})
+#: B's output: sorted indices of the on-bits of the sLSBH code (``size`` bits in all)
+BIN_FEATURES = Topic("bin_features", {"bits": Field("array", _IDX, (1,)), "size": Field("int")})
+#: C's output: the winner cells of the Temporal Memory, and its raw anomaly
+SDR = Topic("sdr", {"cells": Field("array", _IDX, (1,)), "size": Field("int"),
+                    "anomaly": Field("float", optional=True)})
+#: D's (or RatSLAM's local-view cells') output: the visual template of the frame
+VISUAL_TEMPLATE = Topic("visual_template", {
+    "id": Field("int"),
+    "relative_rad": Field("float", optional=True, finite=True),
+    "is_loop_closure": Field("bool", optional=True),
+    "best_interval": Field("int", optional=True),
+    # the score of the best candidate (D: an overlap count, an int; local view: a match error, a
+    # float, inf before the first comparison)
+    "best_score": Field("float", optional=True),
+})
+#: The pose cells' output, one per odometry sample: the action for the experience map and the
+#: odometry it integrates, so that the map needs no other topic and dead reckoning stays in the
+#: same order as the actions
+POSE_CELL_ACTION = Topic("pose_cells/action", {
+    "action": Field("int"), "src_id": Field("int"), "dst_id": Field("int"),
+    "relative_rad": Field("float", optional=True, finite=True),
+    "vtrans": Field("float", finite=True), "vrot": Field("float", finite=True),
+    "dt": Field("float", finite=True),
+})
+#: The experience map's pose of the robot after each action (x, y, theta) and its experience
+EXPERIENCE_POSE = Topic("experience_map/pose", {
+    "pose": Field("array", ("float64", "float32"), (1,), (3,)),
+    "exp_id": Field("int", optional=True),
+})
+#: The whole map at the end of a run: nodes (id, x, y, theta, stamp), links (from, to), and the
+#: full export (``ExperienceMap.export()``: what map.json holds)
+EXPERIENCE_MAP = Topic("experience_map/map", {
+    "nodes": Field("array", ("float64",), (2,)),
+    "links": Field("array", ("int64", "int32"), (2,), optional=True),
+    "export": Field("map", optional=True),
+})

@@ -1,0 +1,153 @@
+"""The runtime's typed configuration (pydantic): run, bus, source; and the YAML loader.
+
+One model per component; ``RunConfig`` composes the runtime's. Unknown keys are errors, and a bad
+value gives one clear message naming the field (``ConfigError``). The algorithms' sections are
+their own models (``neoslam_stream.algorithms``); ``neoslam_stream.config`` composes everything.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+
+class ConfigError(ValueError):
+    """A configuration file or value is invalid; the text names the field and the problem."""
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+#: input queue capacity per topic unless configured (see BusConfig.capacity)
+DEFAULT_CAPACITY = {"image": 2, "odom": 256, "groundtruth": 256, "pose_cells/action": 256}
+
+
+class BusConfig(Strict):
+    """zenoh transport. Every process of a run listens on its own loopback port (assigned
+    automatically on ``host``) and connects to the others; ``listen``/``connect`` add endpoints,
+    e.g. ``connect: [tcp/10.0.0.2:7447]`` for a zenoh router that links several hosts."""
+
+    host: str = "127.0.0.1"
+    listen: list[str] = Field(default_factory=list)
+    connect: list[str] = Field(default_factory=list)
+    #: zenoh shared memory for large payloads. Off by default: at camera rates its gain per
+    #: message is small, but its first use in each process stalls the pipeline, which lost frames
+    #: at the start of real-time runs (measurements: docs/performance.md)
+    shm: bool = False
+    #: a zenoh json5 config file for settings neoslam does not make itself (TLS certificates,
+    #: access control; see docs/reliability.md); neoslam's endpoints, mode and scouting-off apply on top
+    zenoh_config: str | None = None
+    #: input queue capacity per topic (real-time: ring, drop-oldest; lossless: FIFO, blocks).
+    #: image 2: the newest frame plus one, so that a stage stalled for up to two frame periods
+    #: (many processes share few cores) loses nothing; with 1, frames were lost in long runs
+    #: (docs/performance.md). odom is tiny and needed for path integration, so deep.
+    capacity: dict[str, int] = Field(default_factory=lambda: dict(DEFAULT_CAPACITY))
+    default_capacity: int = Field(2, ge=1)
+    #: lossless mode: the source runs at most this many frames ahead of the final topic
+    window: int = Field(8, ge=1)
+
+    @field_validator("zenoh_config")
+    @classmethod
+    def _exists(cls, v: str | None) -> str | None:
+        if v is not None and not Path(v).is_file():
+            raise ValueError(f"zenoh config file {v} does not exist")
+        return str(Path(v).resolve()) if v is not None else None
+
+    @field_validator("capacity")
+    @classmethod
+    def _positive(cls, v: dict[str, int]) -> dict[str, int]:
+        bad = {k: c for k, c in v.items() if c < 1}
+        if bad:
+            raise ValueError(f"capacities must be >= 1: {bad}")
+        return {**DEFAULT_CAPACITY, **v}  # naming one topic keeps the others' defaults
+
+
+class SourceConfig(Strict):
+    """Where frames come from. ``kind`` names a registered source (see ``SOURCES``)."""
+
+    kind: str = "synthetic"
+    params: dict[str, Any] = Field(default_factory=dict)
+    #: auto: recorded timing for real-time runs of recorded data, as fast as possible when lossless
+    pacing: Literal["auto", "fixed", "recorded", "asap"] = "auto"
+    rate: float | None = Field(None, gt=0)
+    rate_multiplier: float = Field(1.0, gt=0)
+    max_frames: int | None = Field(None, ge=1)
+    duration: float | None = Field(None, gt=0)
+
+
+class EmulatedConfig(Strict):
+    """The paper's worked example: service times of the emulated stages (ms)."""
+
+    tau_ms: list[float] = Field(default_factory=lambda: [50.0, 280.0, 20.0, 350.0])
+    busy: bool = False
+
+
+class RunSection(Strict):
+    pipeline: str = "emulated"
+    topology: Literal["pipeline", "monolithic"] = "pipeline"
+    #: lossless: nothing dropped, source back-pressured; realtime: drop-oldest rings
+    mode: Literal["lossless", "realtime"] = "lossless"
+    out: str = "runs"
+    name: str | None = None
+    seed: int = 42
+    #: threads per stage (torch/BLAS/numba); stages not named get 1
+    threads: dict[str, int] = Field(default_factory=dict)
+    live: bool = True
+    #: real-time mode: after the source ends, let frames in flight finish for this long
+    drain_s: float = Field(2.0, ge=0)
+    startup_timeout: float = Field(300.0, gt=0)
+    max_restarts: int = Field(3, ge=0)
+    max_batch: int = Field(8, ge=1)
+    log_level: str = "WARNING"
+    #: save every stage's state every N source frames (0 = never); see docs/reliability.md
+    checkpoint_every: int = Field(0, ge=0)
+
+
+class RunConfig(Strict):
+    run: RunSection = Field(default_factory=RunSection)
+    bus: BusConfig = Field(default_factory=BusConfig)
+    source: SourceConfig = Field(default_factory=lambda: SourceConfig(kind="emulated", params={"frames": None}))
+    emulated: EmulatedConfig = Field(default_factory=EmulatedConfig)
+
+
+def _format_error(exc: ValidationError, origin: str) -> str:
+    parts = []
+    for err in exc.errors():
+        loc = ".".join(str(p) for p in err["loc"]) or "<root>"
+        parts.append(f"{loc}: {err['msg']}")
+    return f"invalid configuration {origin}: " + "; ".join(parts)
+
+
+def load_yaml_config(text: str | None, origin: str, model: type[BaseModel],
+                     overrides: dict[str, Any] | None = None) -> Any:
+    """Validate YAML ``text`` (None: the model's defaults) with nested ``overrides`` on top against
+    ``model``; any fault is one :class:`ConfigError` naming ``origin`` and the field."""
+    data: dict[str, Any] = {}
+    if text is not None:
+        try:
+            loaded = yaml.safe_load(text) or {}
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"{origin} is not valid YAML: {exc}") from None
+        if not isinstance(loaded, dict):
+            raise ConfigError(f"{origin} must hold a mapping at the top level")
+        data = loaded
+    if overrides:
+        data = _merge(data, overrides)
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(_format_error(exc, origin)) from None
+
+
+def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for k, v in over.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = _merge(out[k], v)
+        else:
+            out[k] = v
+    return out

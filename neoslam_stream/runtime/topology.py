@@ -1,0 +1,433 @@
+"""Builds and supervises a run: the source, the stage workers and the monitor, each a process.
+
+Topologies (DESIGN.md): ``pipeline`` runs one process per stage connected by zenoh pub/sub;
+``monolithic`` runs every stage in one process, in sequence, and like the original blocking NeoSLAM
+discards frames that arrive while it is busy except the newest (a small drop-oldest image ring).
+Both host the very same nodes. The runtime knows no algorithm: the caller gives the
+:class:`PipelinePlan` (``neoslam_stream.nodes.pipelines`` builds the named ones).
+
+Every child is a zenoh peer that listens on its own loopback port and connects to all processes
+started before it (a full mesh, so frames go directly from producer to consumer). The supervisor
+(this process) is a zenoh router on its own port, so a tool attaching in client mode to that one
+endpoint (``neoslam monitor RUN_DIR``, tests injecting messages) reaches every process. It waits until every worker announced readiness, starts the
+source, restarts a crashed worker (bounded, reported), detects the end of the run (source done and
+the pipeline drained), stops everything in order and completes ``report.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import multiprocessing as mp
+import os
+import secrets
+import signal
+import time
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from ..sources import source_factory
+from .bus import ZENOH_CONFIG_ENV, free_port, key_for, open_session
+from .checkpoint import cut_dir, latest_complete_cut, latest_stage_state
+from .messages import Message, encode
+from .monitor import MonitorSpec, StatsCollector
+from .node import NodeSpec
+from .procs import monitor_entry, source_entry, worker_entry
+from .source_runner import SourceRunSpec, SourceSpec
+from .worker import WorkerSpec
+
+log = logging.getLogger("neoslam.topology")
+
+
+@dataclass
+class PipelinePlan:
+    """The nodes of a run, the topic whose arrival marks a frame as done, and the image entry stages."""
+
+    stages: list[NodeSpec]
+    final_topic: str
+    entry_stages: list[str] = field(default_factory=list)
+    #: source topics with a consumer: the source waits for their subscribers before the first frame
+    consumed_source_topics: list[str] = field(default_factory=lambda: ["image"])
+
+
+class RunError(RuntimeError):
+    """A run could not start or finish; the text says which process and why."""
+
+
+@dataclass
+class RunResult:
+    run_dir: Path
+    report: dict[str, Any]
+    interrupted: bool = False
+    restarts: dict[str, int] = field(default_factory=dict)
+    #: the signal that interrupted the run (SIGINT, SIGTERM), if any
+    signal: int | None = None
+
+
+def group_workers(plan: PipelinePlan, topology: str) -> dict[str, list[NodeSpec]]:
+    """Worker name -> its NodeSpecs: all in one for ``monolithic``; one each for ``pipeline``,
+    except that a node with ``host`` joins the worker of the node it names."""
+    if topology == "monolithic":
+        return {"monolithic": list(plan.stages)}
+    if topology != "pipeline":
+        raise ValueError(f"unknown topology {topology!r} (pipeline or monolithic)")
+    groups: dict[str, list[NodeSpec]] = {}
+    for s in plan.stages:
+        if s.host:
+            if s.host not in groups:
+                raise ValueError(f"node {s.name!r} is to be hosted by {s.host!r}, which is not before it")
+            groups[s.host].append(s)
+        else:
+            groups[s.name] = [s]
+    return groups
+
+
+def make_run_dir(cfg: Any, out: str | Path | None) -> tuple[str, Path]:
+    name = cfg.run.name or f"{cfg.run.pipeline}-{cfg.run.topology}-{datetime.now():%Y%m%d-%H%M%S}"
+    base = Path(out) if out is not None else Path(cfg.run.out) / name
+    base.mkdir(parents=True, exist_ok=True)
+    return name, base
+
+
+class Supervisor:
+    """Runs ``plan`` with the runtime sections of ``cfg`` (``run``, ``bus``, ``source``)."""
+
+    def __init__(self, cfg: Any, plan: PipelinePlan, run_dir: str | Path | None = None,
+                 resume: str | Path | None = None, map_path: str | Path | None = None) -> None:
+        self.cfg = cfg
+        self.plan = plan
+        self.name, self.run_dir = make_run_dir(cfg, run_dir)
+        self.run_id = f"r{secrets.token_hex(4)}"
+        self.lossless = cfg.run.mode == "lossless"
+        self.ctx = mp.get_context("spawn")
+        self.groups = group_workers(self.plan, cfg.run.topology)
+        self.procs: dict[str, Any] = {}
+        self.restarts: dict[str, int] = {}
+        self.interrupts = 0
+        self.last_signal: int | None = None
+        self.restart_events: list[dict[str, Any]] = []
+        self.source_failure: str | None = None
+        self.t_start = time.time()
+        self.resume = Path(resume) if resume else None
+        self.resume_cut: int | None = None
+        if self.resume is not None:
+            names = [s.name for s in self.plan.stages]
+            self.resume_cut = latest_complete_cut(self.resume / "checkpoint", names)
+            if self.resume_cut is None:
+                raise RunError(f"no complete checkpoint in {self.resume / 'checkpoint'} "
+                               f"(every stage of {names} must have saved the same cut)")
+        self.map_path = ""
+        if map_path is not None:
+            if self.resume is not None:
+                raise RunError("--map and --resume exclude each other (a resumed run has its own state)")
+            from .checkpoint import load_map_file
+
+            try:
+                stored = load_map_file(map_path)["stages"]
+            except (OSError, ValueError) as exc:
+                raise RunError(f"cannot use map {map_path}: {exc}") from None
+            names = [s.name for s in self.plan.stages]
+            if not set(stored) & set(names):
+                raise RunError(f"map {map_path} holds stages {sorted(stored)}, none of this pipeline's {names}")
+            for n in sorted(set(stored) - set(names)):
+                log.warning("map %s: stage %s is not in this pipeline; ignored", map_path, n)
+            self.map_path = str(Path(map_path).resolve())
+        host = cfg.bus.host
+        order = ["supervisor", "monitor", *self.groups, "source"]
+        self.endpoints = {n: f"tcp/{host}:{free_port(host)}" for n in order}
+        self.order = order
+
+    # ------------------------------------------------------------------ specs
+    def _links(self, name: str) -> tuple[list[str], list[str]]:
+        i = self.order.index(name)
+        listen = [self.endpoints[name], *self.cfg.bus.listen]
+        connect = [self.endpoints[n] for n in self.order[:i]] + list(self.cfg.bus.connect)
+        return listen, connect
+
+    def worker_spec(self, wname: str) -> WorkerSpec:
+        specs = self.groups[wname]
+        listen, connect = self._links(wname)
+        caps = dict(self.cfg.bus.capacity)
+        for s in specs:  # what a node needs at least (the recorder must not lose rows)
+            for t, c in s.capacity.items():
+                caps[t] = max(c, caps.get(t, self.cfg.bus.default_capacity))
+        resume_states = {}
+        if self.resume_cut is not None:
+            for s in specs:
+                resume_states[s.name] = str(cut_dir(self.resume / "checkpoint", self.resume_cut) /
+                                            f"{s.name}.state")
+        return WorkerSpec(
+            name=wname, stages=specs, run=self.run_id, run_dir=str(self.run_dir), lossless=self.lossless,
+            listen=listen, connect=connect, shm=self.cfg.bus.shm, capacities=caps,
+            default_capacity=self.cfg.bus.default_capacity,
+            threads=max(s.threads for s in specs) if wname != "monolithic" else max(
+                1, max(s.threads for s in specs)),
+            max_batch=self.cfg.run.max_batch if self.lossless else 1, log_level=self.cfg.run.log_level,
+            resume_states=resume_states, expected_peers=self.order.index(wname), map_path=self.map_path,
+            checkpoint_every=self.cfg.run.checkpoint_every,
+            checkpoint_dir=str(self.run_dir / "checkpoint") if self.cfg.run.checkpoint_every else "")
+
+    def source_spec(self, start_frame: int = 0) -> SourceRunSpec:
+        src = self.cfg.source
+        listen, connect = self._links("source")
+        pacing = src.pacing
+        if pacing == "auto":
+            pacing = "fixed" if src.rate else ("asap" if self.lossless else "recorded")
+        if pacing == "asap" and not self.lossless:
+            raise RunError("pacing 'asap' needs lossless mode (real-time runs need a rate)")
+        return SourceRunSpec(
+            source=SourceSpec(source_factory(src.kind), dict(src.params)), run=self.run_id,
+            run_dir=str(self.run_dir), lossless=self.lossless, listen=listen, connect=connect,
+            shm=self.cfg.bus.shm, pacing=pacing, rate=src.rate, rate_multiplier=src.rate_multiplier,
+            max_frames=src.max_frames, duration=src.duration, window=self.cfg.bus.window,
+            final_topic=self.plan.final_topic, progress=self.cfg.run.live, start_frame=start_frame,
+            expected_peers=len(self.order) - 1,
+            wait_topics=list(getattr(self.plan, "consumed_source_topics", ["image"])))
+
+    def monitor_spec(self) -> MonitorSpec:
+        listen, connect = self._links("monitor")
+        meta = {"topology": self.cfg.run.topology, "mode": self.cfg.run.mode,
+                "pipeline": self.cfg.run.pipeline, "run": self.name, "rate": self.cfg.source.rate,
+                "final_topic": self.plan.final_topic}
+        return MonitorSpec(run=self.run_id, run_dir=str(self.run_dir), final_topic=self.plan.final_topic,
+                           entry_stages=self.plan.entry_stages,
+                           workers={w: [s.name for s in specs] for w, specs in self.groups.items()},
+                           meta=meta, listen=listen, connect=connect, shm=self.cfg.bus.shm,
+                           live=self.cfg.run.live)
+
+    # ------------------------------------------------------------------ processes
+    def _start(self, name: str, target: Any, spec: Any) -> None:
+        p = self.ctx.Process(target=target, args=(spec,), name=f"neoslam-{name}", daemon=False)
+        p.start()
+        self.procs[name] = p
+
+    def _alive_tokens(self) -> set[str]:
+        names = set()
+        for reply in self.session.liveliness().get(key_for(self.run_id, "alive/*"), timeout=1.0):
+            try:
+                names.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
+            except Exception:
+                continue
+        return names
+
+    def _wait_ready(self, names: list[str], timeout: float) -> None:
+        deadline = time.monotonic() + timeout
+        while True:
+            alive = self._alive_tokens()
+            if all(n in alive for n in names):
+                return
+            for n in names:
+                p = self.procs.get(n)
+                if p is not None and not p.is_alive():
+                    if n in self.groups and self.restarts.get(n, 0) < self.cfg.run.max_restarts:
+                        self._restart(n, p.exitcode)
+                        continue
+                    raise RunError(f"process {n!r} exited with code {p.exitcode} during start-up "
+                                   f"(see its log above)")
+            if time.monotonic() > deadline or self.interrupts:
+                missing = [n for n in names if n not in alive]
+                raise RunError(f"processes not ready after {timeout:.0f} s: {missing}")
+            time.sleep(0.2)
+
+    def _control(self, command: str, target: str | None = None, **extra: Any) -> None:
+        data = {"command": command, **extra}
+        if target is not None:
+            data["target"] = target
+        self.session.put(key_for(self.run_id, "control"), encode(Message("control", 0, time.time(), data)))
+
+    def _on_signal(self, signum: int, _frame: Any) -> None:
+        self.interrupts += 1
+        self.last_signal = signum
+        if self.interrupts >= 2:
+            log.warning("second interrupt: killing every process of the run")
+            for p in self.procs.values():
+                if p.is_alive():
+                    p.kill()
+
+    # ------------------------------------------------------------------ the run
+    def run(self) -> RunResult:
+        (self.run_dir / "config.yaml").write_text(yaml.safe_dump(self.cfg.model_dump(mode="json"),
+                                                                 sort_keys=False))
+        old_int = signal.signal(signal.SIGINT, self._on_signal)
+        old_term = signal.signal(signal.SIGTERM, self._on_signal)
+        if self.cfg.bus.zenoh_config:  # every process of the run (spawned children inherit it)
+            os.environ[ZENOH_CONFIG_ENV] = self.cfg.bus.zenoh_config
+        # a router, so that tools attaching in client mode (`neoslam monitor`) reach every process
+        self.session = open_session([self.endpoints["supervisor"], *self.cfg.bus.listen],
+                                    list(self.cfg.bus.connect), self.cfg.bus.shm, mode="router")
+        # written once the router listens: whoever reads it can connect at once
+        tmp = self.run_dir / "endpoints.json.tmp"
+        tmp.write_text(json.dumps({"run": self.run_id, "name": self.name,
+                                   "connect": [self.endpoints["supervisor"]], "mode": "client"}, indent=2))
+        os.replace(tmp, self.run_dir / "endpoints.json")
+        self.collector = StatsCollector()
+        stats_sub = self.session.declare_subscriber(key_for(self.run_id, "stats/**"),
+                                                    self.collector.on_sample)
+        interrupted = False
+        try:
+            self._start("monitor", monitor_entry, self.monitor_spec())
+            self._wait_ready(["monitor"], 60.0)
+            for w in self.groups:
+                self._start(w, worker_entry, self.worker_spec(w))
+            self._wait_ready(list(self.groups), self.cfg.run.startup_timeout)
+            start_frame = self._resume_frame()
+            self._start("source", source_entry, self.source_spec(start_frame))
+            interrupted = self._supervise()
+        except RunError:
+            if not self.interrupts:
+                raise
+            interrupted = True  # Ctrl-C during start-up or a crash while stopping: an interrupted run
+        finally:
+            self._shutdown()
+            stats_sub.undeclare()
+            self.session.close()
+            signal.signal(signal.SIGINT, old_int)
+            signal.signal(signal.SIGTERM, old_term)
+        report = self._complete_report(interrupted)
+        if self.source_failure:
+            raise RunError(f"the source failed: {self.source_failure} (report: {self.run_dir / 'report.json'})")
+        return RunResult(self.run_dir, report, interrupted, dict(self.restarts),
+                         self.last_signal if interrupted else None)
+
+    def _resume_frame(self) -> int:
+        return self.resume_cut or 0
+
+    def _stage_names(self) -> list[str]:
+        return [s.name for specs in self.groups.values() for s in specs]
+
+    def _supervise(self) -> bool:
+        """Until the source is done and the pipeline drained; returns True when interrupted."""
+        src_done_at: float | None = None
+        while True:
+            time.sleep(0.2)
+            if self.interrupts:
+                return True
+            self._restart_crashed()
+            src = self.collector.snapshot().get("source", {})
+            source_proc = self.procs["source"]
+            if not source_proc.is_alive() and source_proc.exitcode not in (0, None) and not src.get("done"):
+                err = self.run_dir / "source_error.txt"
+                self.source_failure = (err.read_text().strip() if err.exists()
+                                       else f"the source process died with exit code {source_proc.exitcode}")
+                return False
+            if src_done_at is None and (src.get("done") or not source_proc.is_alive()):
+                src_done_at = time.monotonic()
+            if src_done_at is None:
+                continue
+            waited = time.monotonic() - src_done_at
+            if self.lossless:
+                if self.collector.quiet(self._stage_names(), for_s=1.0, fresh_s=1.5):
+                    return False
+                # a message lost in transport would keep the strict check false for ever
+                if waited > 20 and self.collector.quiet(self._stage_names(), for_s=10.0, fresh_s=1.5,
+                                                        check_transport=False):
+                    log.warning("pipeline idle but not every published message arrived; ending the run")
+                    return False
+                if waited > 600:
+                    log.warning("pipeline did not drain within 600 s after the source ended")
+                    return False
+            elif waited >= self.cfg.run.drain_s:
+                return False
+
+    def _restart_crashed(self) -> None:
+        for w in self.groups:
+            p = self.procs.get(w)
+            if p is None or p.is_alive():
+                continue
+            n = self.restarts.get(w, 0)
+            if n >= self.cfg.run.max_restarts:
+                raise RunError(f"worker {w!r} died (exit code {p.exitcode}) and was already restarted "
+                               f"{n} times; giving up")
+            self._restart(w, p.exitcode)
+            self._wait_ready([w], self.cfg.run.startup_timeout)
+
+    def _restart(self, w: str, exitcode: int | None) -> None:
+        """Start worker ``w`` again, with each stage's newest checkpointed state when there is one."""
+        n = self.restarts.get(w, 0)
+        log.warning("worker %s died with exit code %s; restarting (%d/%d)", w, exitcode, n + 1,
+                    self.cfg.run.max_restarts)
+        self.restarts[w] = n + 1
+        spec = self.worker_spec(w)
+        cuts = []
+        for s in spec.stages:
+            path = latest_stage_state(self.run_dir / "checkpoint", s.name)
+            if path is not None:
+                spec.resume_states[s.name] = str(path)
+                cuts.append(int(path.parent.name))
+        src = self.collector.snapshot().get("source", {}) if self.collector is not None else {}
+        # what the report says about the crash: when, how, which state came back, and the source's
+        # frame count then (the frames lost in between are those the stage never saw)
+        self.restart_events.append({
+            "worker": w, "time_s": round(time.time() - self.t_start, 3), "exit_code": exitcode,
+            "resumed_from_cut": min(cuts) if cuts else None, "frames_in_at_restart": src.get("frames_in")})
+        self._start(w, worker_entry, spec)
+
+    def _shutdown(self) -> None:
+        """Stop the source, then the workers (they flush), then the monitor; nothing left behind."""
+        def stop(names: list[str], timeout: float) -> None:
+            for n in names:
+                self._control("stop", n)
+            deadline = time.monotonic() + timeout
+            for n in names:
+                p = self.procs.get(n)
+                if p is None:
+                    continue
+                p.join(max(0.1, deadline - time.monotonic()))
+                if p.is_alive():
+                    log.warning("%s did not stop in time; terminating", n)
+                    p.terminate()
+                    p.join(5)
+                if p.is_alive():
+                    p.kill()
+                    p.join(2)
+
+        try:
+            workers = [w for w in self.groups if w in self.procs]
+            # processes that host a watcher (the recorder) go last: what the others publish up to
+            # their end (a stage's last frame, the pose cells' final actions) is still recorded
+            watchers = [w for w in workers if any(s.observer for s in self.groups[w])]
+            others = [w for w in workers if w not in watchers]
+            if self.lossless:
+                if "source" in self.procs:
+                    stop(["source"], 10)
+                stop(others, 60)
+            else:  # a live run ends at once: what is still in flight when the camera stops is lost
+                stop([n for n in ("source", *others) if n in self.procs], 60)
+            stop(watchers, 60)
+            if "monitor" in self.procs:
+                stop(["monitor"], 30)
+        finally:
+            for p in self.procs.values():
+                if p.is_alive():
+                    p.kill()
+                    p.join(2)
+
+    def _complete_report(self, interrupted: bool) -> dict[str, Any]:
+        path = self.run_dir / "report.json"
+        if path.exists():
+            report = json.loads(path.read_text())
+        else:
+            report = {"error": "the monitor wrote no report"}
+        report["restarts"] = dict(self.restarts)
+        report["restart_events"] = list(self.restart_events)
+        report["signal"] = self.last_signal if interrupted else None
+        report["source_failure"] = self.source_failure
+        report["interrupted"] = interrupted
+        report["run_dir"] = str(self.run_dir)
+        report["workers"] = {w: [s.name for s in specs] for w, specs in self.groups.items()}
+        tmp = path.with_suffix(".json.tmp")
+        tmp.write_text(json.dumps(report, indent=2))
+        os.replace(tmp, path)
+        return report
+
+
+def run_plan(cfg: Any, plan: PipelinePlan, run_dir: str | Path | None = None,
+             resume: str | Path | None = None, map_path: str | Path | None = None) -> RunResult:
+    """Run ``plan`` to the end (or until interrupted) and return the report. ``resume``: a run
+    folder to continue from its last complete checkpoint; ``map_path``: an exported map to start
+    from (a new session on an old map)."""
+    return Supervisor(cfg, plan, run_dir, resume, map_path).run()

@@ -1,0 +1,96 @@
+"""The layering of the package (README "Architecture"): algorithms know no runtime, the runtime
+knows no algorithm, and only stage A's process loads torch."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+PKG = Path(__file__).resolve().parents[1] / "neoslam_stream"
+
+
+def _imports(path: Path) -> set[str]:
+    """Every module an import statement of ``path`` names, relative imports resolved."""
+    parts = path.relative_to(PKG.parent).with_suffix("").parts
+    # the package a relative import starts from: the module's own for __init__.py, else its parent's
+    package = ".".join(parts[:-1])
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[: len(base) - (node.level - 1)]  # one level up per extra dot
+                target = ".".join(base + ([node.module] if node.module else []))
+            else:
+                target = node.module or ""
+            found.add(target)
+            found.update(f"{target}.{a.name}" for a in node.names)
+    return found
+
+
+def _modules(sub: str) -> list[Path]:
+    return sorted((PKG / sub).rglob("*.py"))
+
+
+def _offending(paths: list[Path], forbidden: tuple[str, ...]) -> dict[str, list[str]]:
+    bad = {}
+    for p in paths:
+        hits = sorted(m for m in _imports(p) if any(m == f or m.startswith(f + ".") for f in forbidden))
+        if hits:
+            bad[str(p.relative_to(PKG.parent))] = hits
+    return bad
+
+
+def test_the_import_scan_sees_relative_imports():
+    # the scan itself must be able to fail: a node module imports the runtime and the algorithms
+    found = _imports(PKG / "nodes" / "spatial_view.py")
+    assert "neoslam_stream.runtime.node" in found and "neoslam_stream.algorithms.spatial_view" in found
+
+
+def test_no_algorithm_module_imports_the_runtime_nodes_or_zenoh():
+    paths = _modules("algorithms")
+    assert len(paths) >= 10
+    forbidden = ("neoslam_stream.runtime", "neoslam_stream.nodes", "neoslam_stream.sources",
+                 "neoslam_stream.api", "neoslam_stream.launch", "neoslam_stream.cli", "zenoh", "msgpack")
+    assert _offending(paths, forbidden) == {}
+
+
+def test_the_runtime_imports_no_algorithm_and_no_node():
+    paths = _modules("runtime")
+    assert len(paths) >= 10
+    forbidden = ("neoslam_stream.algorithms", "neoslam_stream.nodes", "neoslam_stream.config",
+                 "neoslam_stream.api", "torch")
+    assert _offending(paths, forbidden) == {}
+
+
+def _loaded_after(code: str) -> set[str]:
+    out = subprocess.run([sys.executable, "-c", code + "\nimport sys; print(' '.join(sorted(sys.modules)))"],
+                         capture_output=True, text=True, check=True, timeout=120)
+    return set(out.stdout.split())
+
+
+def test_importing_every_algorithm_loads_no_runtime_and_no_zenoh():
+    mods = [".".join(p.relative_to(PKG.parent).with_suffix("").parts) for p in _modules("algorithms")
+            if p.name != "__init__.py" and p.name != "backbones.py"]
+    loaded = _loaded_after("\n".join(f"import {m}" for m in mods))
+    assert "zenoh" not in loaded
+    assert not any(m.startswith(("neoslam_stream.runtime", "neoslam_stream.nodes")) for m in loaded)
+    assert "torch" not in loaded  # configs and the pure algorithms do not need it
+
+
+@pytest.mark.parametrize("node", ["projector", "neocortex", "spatial_view", "ratslam", "recorder", "pipelines"])
+def test_only_stage_a_loads_torch(node):
+    # each worker imports its node's module: only A's may bring in torch (~180 MB a process)
+    assert "torch" not in _loaded_after(f"import neoslam_stream.nodes.{node}\nimport neoslam_stream.runtime.worker")
+
+
+def test_stage_a_node_does_load_torch_when_it_builds_its_extractor():
+    code = ("from neoslam_stream.nodes.features import make_node\n"
+            "n = make_node(backbone='random_alexnet'); n.setup()")
+    assert "torch" in _loaded_after(code)

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from .runtime.local import LocalChain
-from .runtime.messages import Message
+from .runtime.messages import MAX_FRAME, Message
 
 #: what a step's odometry may be: (vtrans m/s, vrot rad/s, dt s), or a mapping with those keys
 Odometry = tuple[float, float, float] | dict[str, float]
@@ -95,10 +95,16 @@ class _SLAM:
         PNG bytes. ``odometry``: the motion since the previous frame, (vtrans m/s, vrot rad/s,
         dt s), needed by the back end unless the config uses visual odometry. ``stamp``
         (seconds) defaults to the frame number; ``frame`` to the previous frame + 1.
+
+        Bad input raises the node's error (``StageInputError``, ``MessageError``: both
+        ``ValueError``) and uses up the frame number; the next step works normally. Any other
+        exception is a bug in the code, not in the input.
         """
         frame = self.frame + 1 if frame is None else int(frame)
         if frame <= self.frame:
             raise ValueError(f"frame {frame} is not after the previous frame {self.frame}")
+        if frame > MAX_FRAME:
+            raise ValueError(f"frame {frame} does not fit in int64")
         stamp = float(frame if stamp is None else stamp)
         self.frame = frame  # used up even if its input is refused below, like a frame lost on the bus
         out = []

@@ -38,6 +38,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from ._config import make_config
+from .errors import InvalidInput
 
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
@@ -106,7 +107,7 @@ def alexnet_missing_message() -> str:
 
 # --------------------------------------------------------------------------- extractor
 
-class InvalidImage(ValueError):
+class InvalidImage(InvalidInput):
     """A frame this extractor cannot use (the crop does not fit it, ...); the text says why."""
 
 

@@ -36,6 +36,7 @@ from numba import njit, prange
 from pydantic import BaseModel, ConfigDict, Field
 
 from ._config import make_config
+from .errors import InvalidInput
 
 N_PROJ = 1024
 N_BITS = 2 * N_PROJ
@@ -174,7 +175,7 @@ def slsbh(d: np.ndarray, sparsity: float = 0.25) -> np.ndarray:
     """
     d = np.asarray(d)
     if d.ndim != 1:
-        raise ValueError(f"expected a 1-D vector, got shape {d.shape}")
+        raise InvalidInput(f"expected a 1-D vector, got shape {d.shape}")
     m = d.shape[0]
     k = int(round(m * sparsity))
     order_desc = np.argsort(-d, kind="stable")[:k]
@@ -211,9 +212,9 @@ class BinaryProjector:
     def _check(self, feats: np.ndarray) -> np.ndarray:
         f = np.asarray(feats, dtype=np.float32)
         if f.ndim not in (1, 2) or f.shape[-1] != self.input_dim:
-            raise ValueError(f"features of shape {f.shape}, projector expects ({self.input_dim},) or (b, {self.input_dim})")
+            raise InvalidInput(f"features of shape {f.shape}, projector expects ({self.input_dim},) or (b, {self.input_dim})")
         if not np.all(np.isfinite(f)):
-            raise ValueError("features contain NaN or infinite values")
+            raise InvalidInput("features contain NaN or infinite values")
         return f
 
     def centre(self, feats: np.ndarray) -> np.ndarray:

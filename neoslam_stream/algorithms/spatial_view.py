@@ -43,6 +43,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from pyroaring import BitMap
 
 from ._config import make_config
+from .errors import InvalidInput
 
 
 class SpatialViewConfig(BaseModel):
@@ -238,9 +239,9 @@ class SpatialViewCells:
     def _validate(self, sdr: np.ndarray) -> np.ndarray:
         a = np.asarray(sdr)
         if a.ndim != 1:
-            raise ValueError(f"SDR must be a 1-D array of cell indices, got shape {a.shape}")
+            raise InvalidInput(f"SDR must be a 1-D array of cell indices, got shape {a.shape}")
         if a.size and (a.min() < 0 or a.max() >= self.sdr_size):
-            raise ValueError(f"SDR indices must lie in [0, {self.sdr_size})")
+            raise InvalidInput(f"SDR indices must lie in [0, {self.sdr_size})")
         return np.unique(a.astype(np.int64)).astype(np.int32)
 
     def compute(self, sdr: np.ndarray) -> dict[str, Any]:

@@ -63,6 +63,7 @@ from numba import njit
 from pydantic import BaseModel, ConfigDict, Field
 
 from ._config import make_config
+from .errors import InvalidInput
 
 EPS = np.float32(1e-6)
 
@@ -540,13 +541,13 @@ class TemporalMemory:
         """One time step; returns the winner cells (sorted int64 indices)."""
         cols = np.asarray(active_columns)
         if cols.ndim != 1:
-            raise ValueError(f"active_columns must be a 1-D index array, got shape {cols.shape}")
+            raise InvalidInput(f"active_columns must be a 1-D index array, got shape {cols.shape}")
         if cols.size and not np.issubdtype(cols.dtype, np.integer):
             # a float array (NaN included) is not an index list: casting would invent columns
-            raise ValueError(f"active_columns must hold integer indices, got dtype {cols.dtype}")
+            raise InvalidInput(f"active_columns must hold integer indices, got dtype {cols.dtype}")
         cols = np.unique(cols.astype(np.int64))
         if cols.size and (cols[0] < 0 or cols[-1] >= self.n_cols):
-            raise ValueError(f"column indices must lie in [0, {self.n_cols})")
+            raise InvalidInput(f"column indices must lie in [0, {self.n_cols})")
         self.activateDendrites(learn)
         pred_cols = np.unique(self.predictive_cells // self.K)
         self.anomaly = (float(cols.size - np.intersect1d(cols, pred_cols, assume_unique=True).size) / cols.size

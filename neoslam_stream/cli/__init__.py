@@ -181,8 +181,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="neoslam", description="NeoSLAM / RatSLAM as a multiprocess zenoh pipeline.",
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="Examples:\n  neoslam run                        # full NeoSLAM on the synthetic world\n"
-               "  neoslam run -c irat2011 --source bag -p path=irat.db3\n"
-               "  neoslam bench emulate --tau 50,280,20,350 --rate 10 --duration 30 --topology both")
+               "  neoslam run -c irat2011 -p path=data/irat_aus_28112011.bag\n"
+               "  neoslam bench emulate --tau 50,280,20,350 --rate 10 --duration 30 --topology both --out bench/results/emulate")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 

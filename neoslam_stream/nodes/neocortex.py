@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from ..algorithms.errors import InvalidInput
 from ..algorithms.neocortex import Neocortex, NeocortexConfig
 from ..runtime.messages import Message
 from ..runtime.node import Node, Output, StageInputError
@@ -30,7 +31,7 @@ class NeocortexNode(Node):
                                   f"{self.neocortex.config.columns} columns")
         try:
             cells = self.neocortex.compute(bits)
-        except ValueError as exc:
+        except InvalidInput as exc:
             raise StageInputError(str(exc)) from None
         return [(SDR, msg.derive(SDR, {"cells": cells, "size": self.neocortex.n_cells,
                                        "anomaly": float(self.neocortex.anomaly)}))]

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from ..algorithms.errors import InvalidInput
 from ..algorithms.ratslam.experience_map import ExperienceMap, ExperienceMapConfig
 from ..algorithms.ratslam.local_view import LocalViewCells, LocalViewConfig
 from ..algorithms.ratslam.pose_cells import PoseCellConfig, PoseCellNetwork
@@ -198,7 +199,7 @@ class ExperienceMapNode(Node):
             try:
                 self.em.on_action(action, int(d["src_id"]), int(d["dst_id"]), float(d.get("relative_rad", 0.0)),
                                   msg.stamp)
-            except ValueError as exc:
+            except InvalidInput as exc:
                 raise StageInputError(f"inconsistent action: {exc}") from None
         x, y, th = self.em.robot_pose()
         self.last_frame, self.last_stamp = msg.frame, msg.stamp
@@ -261,7 +262,7 @@ class LocalViewNode(Node):
         n_before = len(self.lv.templates)
         try:
             vt, rad = self.lv.on_image(grey)
-        except ValueError as exc:
+        except InvalidInput as exc:
             raise StageInputError(str(exc)) from None
         # a loop closure: an existing template other than the previous one was recognised
         loop = len(self.lv.templates) == n_before and vt != self.prev
@@ -300,7 +301,7 @@ class VisualOdometryNode(Node):
             raise StageInputError(f"image stamp {msg.stamp} is earlier than the previous one ({self.prev_stamp})")
         try:
             res = self.vo.on_image(img, dt)
-        except ValueError as exc:
+        except InvalidInput as exc:
             raise StageInputError(str(exc)) from None
         self.prev_stamp = msg.stamp
         vtrans, vrot = res if res is not None else (0.0, 0.0)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from ..algorithms.errors import InvalidInput
 from ..algorithms.spatial_view import SpatialViewCells, SpatialViewConfig
 from ..runtime.messages import Message
 from ..runtime.node import Node, Output, StageInputError
@@ -27,7 +28,7 @@ class SpatialViewNode(Node):
     def process(self, topic: str, msg: Message) -> Output:
         try:
             res = self.cells.compute(msg["cells"])
-        except ValueError as exc:
+        except InvalidInput as exc:
             raise StageInputError(str(exc)) from None
         self.loops += res["is_loop_closure"]
         # best_score stays an int (an overlap count): templates.csv writes it as the algorithm gave it

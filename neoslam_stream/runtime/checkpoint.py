@@ -7,26 +7,23 @@ file that is then renamed over the target, so a crash mid-write never leaves a t
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Any
 
 import msgpack
 
+from .files import write_atomic
 from .messages import _default, _ext_hook
 
 MAX_STATE_BYTES = 8 * 2**30
 
 
 def save_state_file(path: str | Path, state: dict[str, Any]) -> None:
+    """Write ``state`` to ``path`` atomically (see files.write_atomic): on a failure such as a full
+    disk the OSError is raised and the previous file, if any, is left as it was."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
-        f.write(msgpack.packb(state, default=_default, use_bin_type=True))
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    write_atomic(path, msgpack.packb(state, default=_default, use_bin_type=True))
 
 
 def load_state_file(path: str | Path) -> dict[str, Any]:

@@ -78,6 +78,16 @@ class SourceConfig(Strict):
     max_frames: int | None = Field(None, ge=1)
     duration: float | None = Field(None, gt=0)
 
+    @field_validator("kind")
+    @classmethod
+    def _known_kind(cls, v: str) -> str:
+        from ..sources import SOURCES  # the registry only: no source module is imported
+
+        if ":" not in v and v not in SOURCES:
+            raise ValueError(f"unknown source kind {v!r}; known: {', '.join(sorted(SOURCES))} "
+                             f"(or 'package.module:Class' for your own)")
+        return v
+
 
 class EmulatedConfig(Strict):
     """The paper's worked example: service times of the emulated stages (ms)."""
@@ -136,11 +146,23 @@ def load_yaml_config(text: str | None, origin: str, model: type[BaseModel],
             raise ConfigError(f"{origin} must hold a mapping at the top level")
         data = loaded
     if overrides:
-        data = _merge(data, overrides)
+        data = _merge(_without_other_kinds_params(data, overrides), overrides)
     try:
         return model.model_validate(data)
     except ValidationError as exc:
         raise ConfigError(_format_error(exc, origin)) from None
+
+
+def _without_other_kinds_params(data: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    """A config's ``source.params`` belong to its ``source.kind``: when the overrides pick another
+    kind (``--source folder``), those params are dropped rather than merged into the new source
+    (a synthetic world's ``seed`` means nothing to a folder source)."""
+    src, new = data.get("source"), over.get("source")
+    if not (isinstance(src, dict) and isinstance(new, dict) and "kind" in new):
+        return data
+    if src.get("kind", SourceConfig.model_fields["kind"].default) == new["kind"]:
+        return data
+    return {**data, "source": {k: v for k, v in src.items() if k != "params"}}
 
 
 def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:

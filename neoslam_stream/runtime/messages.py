@@ -36,6 +36,8 @@ MAX_MESSAGE_BYTES = 64 * 1024 * 1024
 #: No single array may hold more elements than this.
 MAX_ARRAY_ELEMENTS = 16 * 1024 * 1024
 MAX_ARRAY_NDIM = 4
+#: Frame numbers are int64 end to end (numpy arrays, state files): a larger one is refused.
+MAX_FRAME = 2**63 - 1
 
 ALLOWED_DTYPES: dict[str, np.dtype] = {
     name: np.dtype(name).newbyteorder("<") if np.dtype(name).itemsize > 1 else np.dtype(name)
@@ -257,6 +259,8 @@ def encode(msg: Message, validate: bool = True) -> bytes:
     """Serialise a message to bytes (msgpack); arrays become little-endian ext payloads."""
     if validate:
         validate_data(msg.type, msg.data)
+        if not 0 <= int(msg.frame) <= MAX_FRAME:
+            raise MessageError(f"frame number {msg.frame} is outside [0, 2**63 - 1] (int64)")
     body = {"v": SCHEMA_VERSION, "type": msg.type, "frame": int(msg.frame), "stamp": float(msg.stamp),
             "trace": [list(t) for t in msg.trace], "data": msg.data}
     out = msgpack.packb(body, default=_default, use_bin_type=True)
@@ -298,6 +302,8 @@ def decode(payload: bytes | bytearray | memoryview, expected_type: str | None = 
         raise MessageError(f"expected a {expected_type!r} message, got {mtype!r}")
     if body["frame"] < 0:
         raise MessageError(f"frame number {body['frame']} is negative")
+    if body["frame"] > MAX_FRAME:
+        raise MessageError(f"frame number {body['frame']} does not fit in int64")
     if not math.isfinite(body["stamp"]):
         raise MessageError("stamp is not finite")
     trace: list[TraceEntry] = []

@@ -17,8 +17,11 @@ Rules for nodes:
   the messages to publish as ``(topic, message)`` pairs; use ``msg.derive(type, data)`` so frame,
   stamp and trace carry over. The worker appends this stage's trace entry itself.
 * Bad input (wrong shape, NaN, corrupt image...) raises :class:`StageInputError` (or
-  :class:`~neoslam_stream.runtime.messages.MessageError`): the worker counts it with its cause, logs the
-  cause once, skips the message and carries on.
+  :class:`~neoslam_stream.runtime.messages.MessageError`, or an algorithm's
+  ``neoslam_stream.algorithms.errors.InvalidInput``): the worker counts it with its cause, logs the
+  cause once, skips the message and carries on. Any other exception is a bug: the worker logs its
+  traceback and counts it apart (``internal_errors``), never as bad input (see
+  :func:`is_input_error`).
 * Frames removed on purpose (``frame_stride``) return ``[]`` and increment ``self.counters["strided"]``,
   so the monitor does not count them as lost.
 * ``info()`` returns small JSON-able facts for ``stats/<stage>`` and ``report.json`` (backbone that
@@ -32,13 +35,24 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from .messages import Message
+from .messages import Message, MessageError
 
 Output = list[tuple[str, Message]]
 
 
 class StageInputError(ValueError):
     """The message was valid on the wire but cannot be processed by this stage (the cause is the text)."""
+
+    #: marks an input error (see :func:`is_input_error`)
+    invalid_input = True
+
+
+def is_input_error(exc: BaseException) -> bool:
+    """Whether ``exc`` says that the *input* was bad (count it, skip the input) rather than that the
+    code is wrong: :class:`StageInputError`, :class:`~neoslam_stream.runtime.messages.MessageError`,
+    and the algorithms' ``InvalidInput``, which the runtime may not import and recognises by its
+    class attribute ``invalid_input = True``. A plain ``ValueError`` is not one."""
+    return isinstance(exc, (StageInputError, MessageError)) or getattr(type(exc), "invalid_input", False) is True
 
 
 class Node:
@@ -54,6 +68,9 @@ class Node:
     unordered_inputs: tuple[str, ...] = ()
     #: folder for the files this node writes, set by its host ("" = the node writes no file)
     run_dir: str = ""
+    #: the run's id, set by its host: a worker restarted after a crash gets the same one, so a node
+    #: that writes files can tell its own earlier output from another run's ("" in-process)
+    run_id: str = ""
     #: a node that only watches topics (the recorder): hosting it next to their producer does not
     #: keep them off the bus
     observer: bool = False

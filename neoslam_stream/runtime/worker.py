@@ -8,10 +8,17 @@ causes, strided, evicted from its input ring), the service time tau_i per frame,
 time and the process's memory (RSS and PSS), and publishes them on ``stats/<stage>`` at
 ``stats_hz``.
 
-A worker never dies from one message: decoding faults (:class:`MessageError`), bad input
-(:class:`StageInputError`, ``ValueError``) and even unexpected exceptions in a node are counted,
-logged once per cause and skipped. SIGINT/SIGTERM or a ``control`` message ``stop`` end it cleanly:
-queued messages are processed, nodes flushed, outputs and final stats published.
+A worker never dies from one message. Bad input (decoding faults: :class:`MessageError`; what a
+node refuses: :class:`StageInputError` or an algorithm's ``InvalidInput``, see
+:func:`~neoslam_stream.runtime.node.is_input_error`; a frame number far ahead of the stage's last
+one: ``max_frame_jump``) is counted under ``errors`` / ``error_causes``, logged once per cause and
+skipped. Any other exception raised by a node is a bug, not bad input: its traceback is logged (once
+per cause), it is counted apart under ``internal_errors`` / ``internal_error_causes`` and the
+message is skipped; the worker goes on with the node's state as it is (a restart would lose that
+state without checkpoints, and the message that triggered the bug would not come again). A failed
+checkpoint write (disk full) is logged once and counted under the node's ``write_errors`` counter;
+the stage goes on. SIGINT/SIGTERM or a ``control`` message ``stop`` end it cleanly: queued
+messages are processed, nodes flushed, outputs and final stats published.
 """
 
 from __future__ import annotations
@@ -30,8 +37,9 @@ from typing import Any
 import numpy as np
 
 from .bus import Bus, InputQueue, key_for, open_session, wait_for_peers
+from .files import describe_write_error
 from .messages import Message, MessageError, decode, encode
-from .node import Node, NodeSpec, StageInputError
+from .node import Node, NodeSpec, is_input_error
 
 log = logging.getLogger("neoslam.worker")
 
@@ -68,6 +76,10 @@ class WorkerSpec:
     #: save each stage's state at every multiple of this frame number (0 = never)
     checkpoint_every: int = 0
     checkpoint_dir: str = ""
+    #: a message whose frame number is more than this ahead of the newest frame a stage has seen is
+    #: refused as bad input (one message must not make a stage jump its frame counter, checkpoint
+    #: cuts or buffers to the end of time); 0 = no limit
+    max_frame_jump: int = 100_000
 
 
 class ServiceStats:
@@ -128,23 +140,46 @@ class StageRuntime:
         self.published: dict[str, int] = defaultdict(int)
         self.errors = 0
         self.error_causes: dict[str, int] = {}
+        #: exceptions that are no input error: bugs (see Worker._process)
+        self.internal_errors = 0
+        self.internal_error_causes: dict[str, int] = {}
         self.times = ServiceStats()
         self.last_frame = -1
+        #: the newest frame number accepted on any input (the base of ``max_frame_jump``)
+        self.frame_seen = -1
         self.checkpoint_index = 0
         #: multi-input stages with checkpoints: messages at or beyond the next cut, held until
         #: every input has reached the cut (see Worker._run_stage), and how far each input got
         self.deferred: list[tuple[str, Message, float]] = []
         self.reached: dict[str, int] = {}
 
-    def record_error(self, cause: str) -> None:
-        self.errors += 1
-        key = cause[:200]
-        if key not in self.error_causes:
-            if len(self.error_causes) < 50:
-                self.error_causes[key] = 0
+    #: distinct causes kept per stage; the others are counted under OTHER_CAUSES
+    MAX_CAUSES = 50
+    OTHER_CAUSES = "(other causes)"
+
+    def record_error(self, cause: str, n: int = 1) -> None:
+        """``n`` messages refused as bad input for ``cause`` (each counted once)."""
+        self.errors += n
+        if _count_cause(self.error_causes, cause, n, self.MAX_CAUSES, self.OTHER_CAUSES):
             log.warning("stage %s: skipped a message: %s", self.name, cause)
-        if key in self.error_causes:
-            self.error_causes[key] += 1
+
+    def record_bug(self, cause: str, n: int = 1) -> bool:
+        """``n`` messages lost to an exception that is no input error; True for a new cause (the
+        caller logs its traceback)."""
+        self.internal_errors += n
+        return _count_cause(self.internal_error_causes, cause, n, self.MAX_CAUSES, self.OTHER_CAUSES)
+
+
+def _count_cause(causes: dict[str, int], cause: str, n: int, limit: int, other: str) -> bool:
+    """Add ``n`` to ``cause`` (its first 200 characters) in ``causes``, or to ``other`` once
+    ``limit`` causes are known, so that the counts always add up to the total. True when a key is
+    new (a new cause, or the first one counted under ``other``): the caller logs it."""
+    key = cause[:200]
+    if key not in causes and len(causes) >= limit:
+        key = other
+    new = key not in causes
+    causes[key] = causes.get(key, 0) + n
+    return new
 
 
 class Worker:
@@ -171,6 +206,7 @@ class Worker:
             out_dir = os.path.join(self.spec.run_dir, s.output_subdir) if s.output_subdir else self.spec.run_dir
             os.makedirs(out_dir, exist_ok=True)
             adapter.run_dir = out_dir
+            adapter.run_id = self.spec.run
             self.stages.append(StageRuntime(adapter, s.remap))
         for i, st in enumerate(self.stages):
             for t in st.inputs:
@@ -251,10 +287,26 @@ class Worker:
         n = self.spec.checkpoint_every
         if n <= 0 or frame // n <= st.checkpoint_index:
             return
+        # one cut per message at most: frames jumping over several cuts save the newest one only
         st.checkpoint_index = frame // n
-        from .checkpoint import save_stage_state
+        self._save_cut(st, st.checkpoint_index * n)
 
-        save_stage_state(self.spec.checkpoint_dir, st.checkpoint_index * n, st.name, st.adapter.state_dict())
+    def _save_cut(self, st: StageRuntime, cut: int) -> None:
+        """Save the stage's state for ``cut``; a failed write (disk full) is logged once, counted
+        under the node's ``write_errors`` counter, and the stage goes on without that cut."""
+        from .checkpoint import cut_dir, save_stage_state
+
+        try:
+            save_stage_state(self.spec.checkpoint_dir, cut, st.name, st.adapter.state_dict())
+        except OSError as exc:
+            self._write_failed(st, cut_dir(self.spec.checkpoint_dir, cut) / f"{st.name}.state", exc)
+
+    def _write_failed(self, st: StageRuntime, path: Any, exc: OSError) -> None:
+        counters = st.adapter.counters
+        if not counters.get("write_errors"):
+            log.error("stage %s: %s (further write errors of this stage are counted, not logged)",
+                      st.name, describe_write_error(path, exc))
+        counters["write_errors"] = counters.get("write_errors", 0) + 1
 
     #: a multi-input stage holds at most this many messages for a cut; beyond, it cuts anyway
     #: (an input that never reaches the cut, e.g. no odometry at all, must not stall the stage)
@@ -282,33 +334,63 @@ class Worker:
         return ready_m, ready_r
 
     def _release_cut(self, idx: int) -> None:
+        """Save the cut once every input has reached it (or too much is held), then process what
+        was held. A loop, not a recursion: each round saves one cut and hands every held message
+        below the next cut to the node; the cut saved is the newest one the held messages and the
+        inputs' progress allow, so frames far ahead never make it save every multiple of N on the
+        way (at most one cut per round, and a round ends with a held message processed or with
+        the stage waiting for an input)."""
         st = self.stages[idx]
         n = self.spec.checkpoint_every
-        cut = (st.checkpoint_index + 1) * n
-        if not st.deferred:
-            return
-        if not all(st.reached.get(t, -1) >= cut for t in st.ordered_inputs) and len(st.deferred) < self.MAX_DEFERRED:
-            return
-        from .checkpoint import save_stage_state
+        while st.deferred:
+            cut = (st.checkpoint_index + 1) * n
+            reached = all(st.reached.get(t, -1) >= cut for t in st.ordered_inputs)
+            if not reached and len(st.deferred) < self.MAX_DEFERRED:
+                return
+            # nothing below the lowest held frame is still to come on an input that reached it:
+            # the state now is that of every cut up to there (only empty cuts are skipped)
+            bound = min(m.frame for _t, m, _r in st.deferred)
+            if reached:
+                bound = min(bound, *(st.reached.get(t, -1) for t in st.ordered_inputs))
+            cut = max(cut, bound // n * n)
+            st.checkpoint_index = cut // n
+            self._save_cut(st, cut)
+            held, st.deferred = st.deferred, []
+            for t, m, r in held:  # in arrival order; the next cut may hold some of them again
+                ready_m, ready_r = self._hold_for_cut(idx, t, [m], [r])
+                if ready_m:
+                    self._process(idx, t, ready_m, ready_r)
 
-        st.checkpoint_index = cut // n
-        save_stage_state(self.spec.checkpoint_dir, cut, st.name, st.adapter.state_dict())
-        held, st.deferred = st.deferred, []
-        for t, m, r in held:  # in arrival order; the next cut may hold some of them again
-            self._run_stage(idx, t, [m], [r], counted=True)
+    def _refuse_jumps(self, st: StageRuntime, topic: str, msgs: list[Message],
+                      received: list[float]) -> tuple[list[Message], list[float]]:
+        """Messages whose frame number is more than ``max_frame_jump`` ahead of the newest frame
+        the stage has seen are bad input: counted with their cause, not processed."""
+        jump = self.spec.max_frame_jump
+        ok_m, ok_r = [], []
+        for m, r in zip(msgs, received, strict=True):
+            if jump > 0 and st.frame_seen >= 0 and m.frame - st.frame_seen > jump:
+                st.received += 1
+                st.record_error(f"StageInputError: frame {m.frame} on {topic} is {m.frame - st.frame_seen} "
+                                f"frames ahead of the newest frame seen ({st.frame_seen}), more than "
+                                f"max_frame_jump={jump}")
+                continue
+            st.frame_seen = max(st.frame_seen, m.frame)
+            ok_m.append(m)
+            ok_r.append(r)
+        return ok_m, ok_r
 
-    def _run_stage(self, idx: int, topic: str, msgs: list[Message], received: list[float],
-                   counted: bool = False) -> None:
+    def _run_stage(self, idx: int, topic: str, msgs: list[Message], received: list[float]) -> None:
         st = self.stages[idx]
+        msgs, received = self._refuse_jumps(st, topic, msgs, received)
+        if not msgs:
+            return
+        st.received += len(msgs)
         if self.spec.checkpoint_every > 0 and len(st.inputs) > 1:
-            if not counted:
-                st.received += len(msgs)
             msgs, received = self._hold_for_cut(idx, topic, msgs, received)
             if msgs:
                 self._process(idx, topic, msgs, received)
             self._release_cut(idx)
             return
-        st.received += len(msgs)
         self._maybe_checkpoint(st, min(m.frame for m in msgs))
         self._process(idx, topic, msgs, received)
 
@@ -321,18 +403,21 @@ class Worker:
                 outputs = st.adapter.process(local, msgs[0])
             else:
                 outputs = st.adapter.process_batch(local, msgs)
-        except (StageInputError, MessageError, ValueError) as exc:
-            st.record_error(f"{type(exc).__name__}: {exc}")
-            if len(msgs) > 1:  # retry one by one so one bad frame does not cost its batch-mates
-                for m, r in zip(msgs, received, strict=True):
-                    self._run_stage(idx, topic, [m], [r])
-                st.received -= len(msgs)
-                st.errors -= 1
-            return
-        except Exception as exc:  # a bug must not kill the worker; count it, log the traceback once
+        except Exception as exc:
             cause = f"{type(exc).__name__}: {exc}"
-            if cause[:200] not in st.error_causes:
-                log.error("stage %s raised:\n%s", st.name, traceback.format_exc())
+            if not is_input_error(exc):
+                # a bug, not bad input: never hidden among the refused inputs. It must not kill the
+                # worker either: log the traceback once per cause, count the messages it cost
+                if st.record_bug(cause, len(msgs)):
+                    log.error("stage %s: internal error (a bug, not bad input) on %s frame %s:\n%s",
+                              st.name, topic, msgs[0].frame, traceback.format_exc())
+                return
+            if len(msgs) > 1:
+                # retry one by one so one bad frame does not cost its batch-mates; each refused
+                # frame is counted there, once
+                for m, r in zip(msgs, received, strict=True):
+                    self._process(idx, topic, [m], [r])
+                return
             st.record_error(cause)
             return
         finished = time.time()
@@ -434,6 +519,8 @@ class Worker:
                     "started": self._started, "received": st.received, "processed": st.processed,
                     "published": dict(st.published), "errors": st.errors,
                     "error_causes": dict(st.error_causes), "counters": dict(st.adapter.counters),
+                    "internal_errors": st.internal_errors,
+                    "internal_error_causes": dict(st.internal_error_causes),
                     "inputs": inputs, "outputs": list(st.outputs),
                     "consumes": list(st.inputs), "last_frame": st.last_frame,
                     "info": info, "cpu_percent": cpu, "cpu_s": cpu_s, "rss_mb": rss, "pss_mb": pss,
@@ -492,10 +579,13 @@ class Worker:
         for st in self.stages:
             if st.adapter.observer:  # what a watcher holds (rows of output files) is no learned map
                 continue
+            path = Path(self.spec.run_dir) / "state" / f"{st.name}.state"
             try:
                 state = st.adapter.state_dict()
                 if state:
-                    save_state_file(Path(self.spec.run_dir) / "state" / f"{st.name}.state", state)
+                    save_state_file(path, state)
+            except OSError as exc:  # disk full: the previous file (if any) is intact; say so
+                self._write_failed(st, path, exc)
             except Exception as exc:  # never lose the flush over it; say so
                 log.error("stage %s: final state not saved: %s", st.name, exc)
 

@@ -28,8 +28,9 @@ from neoslam_stream.evaluation import write_tum
 from neoslam_stream.runtime.messages import MAX_MESSAGE_BYTES, Message, encode
 from neoslam_stream.sources.synthetic import SyntheticWorldSource
 
-#: frame numbers of injected messages: far from the real ones, so none can pass for a real frame
-INJECTED_FRAME = 10**6
+#: frame numbers of injected messages: far from the real ones, so none can pass for a real frame,
+#: but within a stage's ``max_frame_jump`` (100 000), so that each is refused for its own fault
+INJECTED_FRAME = 50_000
 
 
 @dataclass
@@ -158,6 +159,12 @@ def bus_items() -> list[tuple[str, bytes, str, str]]:
         ("odom", _msg("odom", {"vtrans": float("nan"), "vrot": 0.0, "dt": 0.1}), "pose_cells", "finite"),
         ("odom", _msg("odom", {"vtrans": 0.1, "vrot": 0.0, "dt": float("inf")}), "pose_cells", "finite"),
         ("odom", _msg("odom", {"vtrans": 0.1, "vrot": 0.0, "dt": 0.1}, frame=0), "pose_cells", "out of order"),
+        # --- frame numbers: beyond int64, and far ahead of every frame seen (one message must not
+        #     move a stage's frame counter, buffers and checkpoint cuts to the end of time)
+        ("odom", _raw({"v": 1, "type": "odom", "frame": 2**64 - 1, "stamp": 1.0, "trace": [],
+                       "data": {"vtrans": 0.1, "vrot": 0.0, "dt": 0.1}}), "pose_cells", "int64"),
+        ("odom", _msg("odom", {"vtrans": 0.1, "vrot": 0.0, "dt": 0.1}, frame=10**9), "pose_cells",
+         "max_frame_jump"),
         # --- template ids: negative, out of order (frame 0 was applied long ago)
         ("visual_template", _msg("visual_template", {"id": -3, "is_loop_closure": False, "relative_rad": 0.0}),
          "pose_cells", "negative"),

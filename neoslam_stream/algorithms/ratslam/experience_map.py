@@ -35,6 +35,7 @@ from numba import njit
 from pydantic import BaseModel, ConfigDict, Field
 
 from .._config import make_config
+from ..errors import InvalidInput
 from .pose_cells import CREATE_EDGE, CREATE_NODE, SET_NODE
 
 
@@ -179,7 +180,7 @@ class ExperienceMap:
     def on_odo(self, vtrans: float, vrot: float, dt: float) -> None:
         """Dead reckoning: rotate first, then advance vtrans*dt along the absolute heading."""
         if not (math.isfinite(vtrans) and math.isfinite(vrot) and math.isfinite(dt)):
-            raise ValueError(f"odometry must be finite, got vtrans={vtrans} vrot={vrot} dt={dt}")
+            raise InvalidInput(f"odometry must be finite, got vtrans={vtrans} vrot={vrot} dt={dt}")
         vtrans, vrot = vtrans * dt, vrot * dt
         self.accum_facing = clip_pi(self.accum_facing + vrot)
         self.accum_dx += vtrans * math.cos(self.accum_facing)
@@ -252,10 +253,10 @@ class ExperienceMap:
         CREATE_NODE of a known id links to it; CREATE_EDGE or SET_NODE to an unknown id creates it.
         """
         if not math.isfinite(rel_rad):
-            raise ValueError(f"relative_rad must be finite, got {rel_rad}")
+            raise InvalidInput(f"relative_rad must be finite, got {rel_rad}")
         dst, src = int(dst), int(src)
         if action not in (CREATE_NODE, CREATE_EDGE, SET_NODE):
-            raise ValueError(f"unknown action {action}")
+            raise InvalidInput(f"unknown action {action}")
         if dst not in self.index:
             self.repaired_actions += int(action != CREATE_NODE)
             self.create_experience(dst, stamp)

@@ -34,6 +34,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 from pydantic import BaseModel, ConfigDict, Field
 
 from .._config import make_config
+from ..errors import InvalidInput
 
 #: OpenRatSLAM's slack on the mean pre-filter (hard-coded in the C++).
 MEAN_EPSILON = 0.005
@@ -160,7 +161,7 @@ class LocalViewCells:
         c = self.cfg
         img = np.asarray(grey)
         if img.ndim not in (2, 3) or img.size == 0:
-            raise ValueError(f"expected a grey (HxW) or colour (HxWxC) image, got shape {img.shape}")
+            raise InvalidInput(f"expected a grey (HxW) or colour (HxWxC) image, got shape {img.shape}")
         h, w = img.shape[:2]
         x1 = w if c.image_crop_x_max < 0 else min(c.image_crop_x_max, w)
         y1 = h if c.image_crop_y_max < 0 else min(c.image_crop_y_max, h)
@@ -170,7 +171,7 @@ class LocalViewCells:
             crop, scale = crop.sum(axis=2), 255.0 * crop.shape[2]
         bh, bw = crop.shape[0] // c.template_y_size, crop.shape[1] // c.template_x_size
         if bh == 0 or bw == 0:
-            raise ValueError(f"crop of {crop.shape[1]}x{crop.shape[0]} px is smaller than the "
+            raise InvalidInput(f"crop of {crop.shape[1]}x{crop.shape[0]} px is smaller than the "
                              f"{c.template_x_size}x{c.template_y_size} template")
         used = crop[: bh * c.template_y_size, : bw * c.template_x_size]
         # 8-bit pixels make every block sum an exact integer, so dividing in the C++'s order

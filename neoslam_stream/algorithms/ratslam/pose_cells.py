@@ -42,6 +42,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from scipy.ndimage import correlate1d
 
 from .._config import make_config
+from ..errors import InvalidInput
 
 NO_ACTION, CREATE_NODE, CREATE_EDGE, SET_NODE = 0, 1, 2, 3
 CELLS_TO_AVG = 3
@@ -256,7 +257,7 @@ class PoseCellNetwork:
     def on_odo(self, vtrans: float, vrot: float, dt: float) -> None:
         """One odometry step: vtrans (m/s) and vrot (rad/s) over dt seconds."""
         if not (math.isfinite(vtrans) and math.isfinite(vrot) and math.isfinite(dt)):
-            raise ValueError(f"odometry must be finite, got vtrans={vtrans} vrot={vrot} dt={dt}")
+            raise InvalidInput(f"odometry must be finite, got vtrans={vtrans} vrot={vrot} dt={dt}")
         self._excite_inhibit()
         self._path_integration(vtrans * dt, vrot * dt)
         self._find_best()
@@ -274,9 +275,9 @@ class PoseCellNetwork:
         c = self.cfg
         vt = int(vt)
         if vt < 0:
-            raise ValueError(f"template id must be >= 0, got {vt}")
+            raise InvalidInput(f"template id must be >= 0, got {vt}")
         if not math.isfinite(rad):
-            raise ValueError(f"relative_rad must be finite, got {rad}")
+            raise InvalidInput(f"relative_rad must be finite, got {rad}")
         if not c.openratslam_compat:
             # fix 5: the C++ only updates vt_delta_pc_th when injecting, so a stale rotation
             # leaks into delta_pc and into later actions' relative_rad

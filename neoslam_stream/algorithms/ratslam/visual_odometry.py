@@ -28,6 +28,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from .._config import make_config
+from ..errors import InvalidInput
 
 SLEN = 40
 
@@ -60,7 +61,7 @@ def profile(img: np.ndarray, x0: int, x1: int, y0: int, y1: int) -> np.ndarray:
     y1 = h if y1 < 0 else min(y1, h)
     win = np.asarray(img[y0:y1, x0:x1], dtype=np.float64)
     if win.shape[0] == 0 or win.shape[1] == 0:
-        raise ValueError(f"empty odometry window x[{x0},{x1}) y[{y0},{y1}) in a {w}x{h} image")
+        raise InvalidInput(f"empty odometry window x[{x0},{x1}) y[{y0},{y1}) in a {w}x{h} image")
     scale = 255.0
     if win.ndim == 3:
         win, scale = win.sum(axis=2), 255.0 * win.shape[2]
@@ -76,7 +77,7 @@ def best_shift(cur: np.ndarray, prev: np.ndarray, slen: int = SLEN) -> tuple[int
     """
     n = cur.size
     if prev.size != n:
-        raise ValueError(f"profiles differ in length: {n} and {prev.size}")
+        raise InvalidInput(f"profiles differ in length: {n} and {prev.size}")
     offs = np.arange(min(slen, n - 1) if n > 1 else 1)
     neg = np.array([np.abs(cur[: n - o] - prev[o:]).sum() / (n - o) for o in offs])
     pos = np.array([np.abs(cur[o:] - prev[: n - o]).sum() / (n - o) for o in offs])
@@ -103,9 +104,9 @@ class VisualOdometry:
         c = self.cfg
         g = np.asarray(img)
         if g.ndim not in (2, 3):
-            raise ValueError(f"expected a grey (HxW) or colour (HxWxC) image, got shape {g.shape}")
+            raise InvalidInput(f"expected a grey (HxW) or colour (HxWxC) image, got shape {g.shape}")
         if dt is not None and not (math.isfinite(dt) and dt >= 0):
-            raise ValueError(f"dt must be finite and >= 0, got {dt}")
+            raise InvalidInput(f"dt must be finite and >= 0, got {dt}")
         pt = profile(g, c.vtrans_image_x_min, c.vtrans_image_x_max, c.vtrans_image_y_min, c.vtrans_image_y_max)
         pr = profile(g, c.vrot_image_x_min, c.vrot_image_x_max, c.vrot_image_y_min, c.vrot_image_y_max)
         if self.prev_trans is None or self.prev_trans.shape != pt.shape or self.prev_rot.shape != pr.shape:

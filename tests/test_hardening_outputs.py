@@ -1,0 +1,461 @@
+"""Issue #13: bugs are not bad input, each bad input counted once, one message cannot make a stage
+run away with its frame number, outputs written as they come and kept across a worker's crash,
+a full disk never empties a file.
+
+Most tests host nodes in an in-process :class:`Worker` (no zenoh): its ``handle`` is what the worker
+process calls for every message taken from its queue. The last one kills a real worker.
+"""
+
+from __future__ import annotations
+
+import errno
+import logging
+import os
+import signal
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from neoslam_stream.algorithms.errors import InvalidInput
+from neoslam_stream.nodes.recorder import JOURNAL, TEMPLATES_HEADER, RecorderNode
+from neoslam_stream.nodes.topics import EXPERIENCE_MAP, EXPERIENCE_POSE, VISUAL_TEMPLATE
+from neoslam_stream.runtime import files as files_mod
+from neoslam_stream.runtime.bus import InputQueue
+from neoslam_stream.runtime.messages import MAX_FRAME, Message, MessageError, encode
+from neoslam_stream.runtime.node import Node, NodeSpec, StageInputError, is_input_error
+from neoslam_stream.runtime.worker import Worker, WorkerSpec
+from neoslam_stream.tum import write_tum
+
+
+# ------------------------------------------------------------------------------ helpers
+class ProbeNode(Node):
+    """Does what each message asks: ``ok``, or raise an invalid input, a stage input error or a bug."""
+
+    inputs = ("probe",)
+    outputs = ()
+
+    def __init__(self, batchable: bool = False) -> None:
+        super().__init__()
+        self.batchable = batchable
+        self.seen: list[int] = []
+
+    def process(self, topic, msg):
+        what = msg["what"]
+        if what == "invalid":
+            raise InvalidInput(f"frame {msg.frame}: the algorithm refuses this input")
+        if what == "stage":
+            raise StageInputError(f"frame {msg.frame}: the node refuses this input")
+        if what == "bug":
+            raise ValueError("an internal ValueError (a bug)")
+        if what == "keyerror":
+            return [("x", msg.data["missing"])]
+        self.seen.append(msg.frame)
+        return []
+
+    def process_batch(self, topic, msgs):
+        if any(m["what"] != "ok" for m in msgs):
+            raise StageInputError("a frame of the batch is bad")
+        self.seen += [m.frame for m in msgs]
+        return []
+
+    def state_dict(self):
+        return {"seen": list(self.seen)}
+
+
+def make_probe(batchable: bool = False) -> ProbeNode:
+    return ProbeNode(batchable)
+
+
+class FakeBus:
+    def __init__(self) -> None:
+        self.out: list[tuple[str, bytes]] = []
+
+    def put(self, topic: str, payload: bytes) -> None:
+        self.out.append((topic, payload))
+
+
+def _worker(tmp_path: Path, spec: NodeSpec, **kw) -> Worker:
+    w = Worker(WorkerSpec(name=spec.name, stages=[spec], run="test-run", run_dir=str(tmp_path), lossless=True,
+                          checkpoint_dir=str(tmp_path / "checkpoint"), **kw))
+    w.build()
+    w.setup()
+    w.bus = FakeBus()  # type: ignore[assignment]
+    return w
+
+
+def _probe(frame: int, what: str = "ok") -> bytes:
+    return encode(Message("probe", frame, float(frame), {"what": what}))
+
+
+def _stats(w: Worker) -> dict:
+    return w.stats_messages()[0].data
+
+
+# ------------------------------------------------------------------------------ 1. bugs are not bad input
+def test_algorithms_refuse_bad_input_with_their_own_error_type():
+    from neoslam_stream.algorithms.features import InvalidImage
+    from neoslam_stream.algorithms.ratslam.experience_map import ExperienceMap
+    from neoslam_stream.algorithms.ratslam.local_view import LocalViewCells
+    from neoslam_stream.algorithms.ratslam.pose_cells import PoseCellNetwork
+    from neoslam_stream.algorithms.ratslam.visual_odometry import VisualOdometry
+    from neoslam_stream.algorithms.spatial_view import SpatialViewCells
+    from neoslam_stream.algorithms.temporal_memory import TemporalMemory
+
+    refusals = [
+        lambda: SpatialViewCells(sdr_size=256).compute(np.array([1, 300])),
+        lambda: TemporalMemory(columnDimensions=(32,), cellsPerColumn=2).compute(np.array([0.5, 1.5])),
+        lambda: TemporalMemory(columnDimensions=(32,), cellsPerColumn=2).compute(np.array([40])),
+        lambda: PoseCellNetwork(pc_dim_xy=11).on_odo(float("nan"), 0.0, 0.1),
+        lambda: PoseCellNetwork(pc_dim_xy=11).on_view_template(-1),
+        lambda: ExperienceMap().on_odo(0.1, float("inf"), 0.1),
+        lambda: LocalViewCells(template_x_size=60, template_y_size=20, vt_shift_match=4).on_image(
+            np.zeros(10, np.uint8)),
+        lambda: VisualOdometry().on_image(np.zeros((60, 80), np.uint8), float("nan")),
+    ]
+    for refuse in refusals:
+        with pytest.raises(InvalidInput) as info:
+            refuse()
+        assert is_input_error(info.value)
+    assert issubclass(InvalidImage, InvalidInput) and issubclass(InvalidInput, ValueError)
+    # what the runtime counts as bad input, and what it does not
+    assert is_input_error(StageInputError("x")) and is_input_error(MessageError("x"))
+    assert not is_input_error(ValueError("x")) and not is_input_error(KeyError("x"))
+
+
+def test_a_bug_in_a_node_is_counted_apart_from_bad_input_and_the_worker_goes_on(tmp_path, caplog):
+    w = _worker(tmp_path, NodeSpec("probe", f"{__name__}:make_probe"))
+    kinds = ["ok", "invalid", "ok", "stage", "bug", "ok", "keyerror", "bug", "ok"]
+    with caplog.at_level(logging.WARNING, logger="neoslam.worker"):
+        for f, what in enumerate(kinds):
+            w.handle("probe", _probe(f, what), time.time())
+    st = _stats(w)
+    node = w.stages[0].adapter
+    assert node.seen == [f for f, what in enumerate(kinds) if what == "ok"]  # it went on
+    # bad input: the algorithm's InvalidInput and the node's StageInputError, each once
+    assert st["errors"] == 2 and sum(st["error_causes"].values()) == 2
+    assert all(c.startswith(("InvalidInput:", "StageInputError:")) for c in st["error_causes"])
+    # bugs: a plain ValueError and a KeyError are no bad input; counted apart, traceback logged once
+    assert st["internal_errors"] == 3
+    assert st["internal_error_causes"] == {"ValueError: an internal ValueError (a bug)": 2,
+                                           "KeyError: 'missing'": 1}
+    tracebacks = [r for r in caplog.records if r.levelno == logging.ERROR and "internal error" in r.message]
+    assert len(tracebacks) == 2 and "Traceback" in tracebacks[0].message
+    assert st["processed"] == 4 and st["received"] == len(kinds)
+
+
+def test_the_in_process_api_raises_bad_input_to_the_caller_and_goes_on():
+    from neoslam_stream.api import NeoSLAM
+
+    slam = NeoSLAM(_light_config(), backend=True)
+    img = np.zeros((96, 160, 3), np.uint8)
+    slam.step(img, odometry=(0.1, 0.0, 0.1))
+    with pytest.raises(StageInputError):
+        slam.step(np.zeros((96, 160, 5), np.uint8), odometry=(0.1, 0.0, 0.1))
+    with pytest.raises(ValueError, match="int64"):
+        slam.step(img, odometry=(0.1, 0.0, 0.1), frame=MAX_FRAME + 1)
+    r = slam.step(img, odometry=(0.1, 0.0, 0.1))
+    assert r.frame == 2 and r.template is not None and r.pose is not None
+    slam.finish()
+
+
+def _light_config():
+    from neoslam_stream.config import load_config
+
+    return load_config("default", {"features": {"backbone": "random_alexnet"},
+                                   "projector": {"projection": "sparse"}, "pose_cells": {"pc_dim_xy": 11}})
+
+
+# ------------------------------------------------------------------------------ 2. counted once
+def test_a_bad_frame_in_a_micro_batch_is_counted_once(tmp_path):
+    w = _worker(tmp_path, NodeSpec("probe", f"{__name__}:make_probe", {"batchable": True}), max_batch=8)
+    w.queue = InputQueue({"probe": 16}, lossless=True)
+    kinds = ["ok", "stage", "ok", "invalid", "ok", "ok"]
+    for f, what in enumerate(kinds):
+        w.queue.put("probe", _probe(f, what), time.time())
+    w.handle(*w.queue.get(0.1))  # the first and, batched with it, every other waiting one
+    assert w.queue.depth() == {"probe": 0}
+    st = _stats(w)
+    assert st["errors"] == 2
+    assert sum(st["error_causes"].values()) == st["errors"]  # each bad frame once, not batch + frame
+    assert st["received"] == len(kinds) and st["processed"] == 4
+    assert w.stages[0].adapter.seen == [0, 2, 4, 5]
+
+
+def test_error_causes_always_add_up_to_the_errors(tmp_path):
+    w = _worker(tmp_path, NodeSpec("probe", f"{__name__}:make_probe"))
+    for f in range(80):  # more distinct causes than are kept
+        w.handle("probe", _probe(f, "stage"), time.time())
+    st = _stats(w)
+    assert st["errors"] == 80 and sum(st["error_causes"].values()) == 80
+    assert st["error_causes"]["(other causes)"] == 80 - 50
+
+
+# ------------------------------------------------------------------------------ 3. frames far ahead
+def _pose_cells_worker(tmp_path: Path, **kw) -> Worker:
+    return _worker(tmp_path, NodeSpec("pose_cells", "neoslam_stream.nodes.ratslam:make_pose_cells_node",
+                                      {"pc_dim_xy": 11}), checkpoint_every=20, **kw)
+
+
+def _tpl(frame: int, vt: int = 0) -> bytes:
+    return encode(Message("visual_template", frame, frame * 0.1,
+                          {"id": vt, "is_loop_closure": False, "relative_rad": 0.0, "best_interval": -1,
+                           "best_score": 0}), validate=False)
+
+
+def _odo(frame: int) -> bytes:
+    return encode(Message("odom", frame, frame * 0.1, {"vtrans": 0.1, "vrot": 0.0, "dt": 0.1}), validate=False)
+
+
+def _drive(w: Worker, frames: int, inject_at: int, injected: list[tuple[str, bytes]]) -> None:
+    for f in range(frames):
+        w.handle("odom", _odo(f), time.time())
+        if f == inject_at:
+            for topic, payload in injected:
+                w.handle(topic, payload, time.time())
+        w.handle("visual_template", _tpl(f, f % 7), time.time())
+
+
+def _cuts(tmp_path: Path) -> list[int]:
+    root = tmp_path / "checkpoint"
+    return sorted(int(p.name) for p in root.iterdir()) if root.exists() else []
+
+
+def test_a_frame_number_far_ahead_is_refused_and_the_stage_goes_on(tmp_path):
+    frames = 100
+    w = _pose_cells_worker(tmp_path)
+    # odometry of frame 2**64 - 1 (what crashed the pose cells), then messages far ahead
+    _drive(w, frames, 50, [("odom", _odo(2**64 - 1)), ("odom", _odo(10**7)),
+                           ("visual_template", _tpl(10**6, 3))])
+    st = _stats(w)
+    assert st["errors"] == 3 and sum(st["error_causes"].values()) == 3
+    causes = " | ".join(st["error_causes"])
+    assert "does not fit in int64" in causes and causes.count("max_frame_jump=100000") == 2
+    # every real frame went through: one action per odometry, in order
+    assert st["processed"] == 2 * frames
+    assert [t for t, _ in w.bus.out] == ["pose_cells/action"] * frames
+    # checkpoint cuts: one per multiple of 20 the frames passed, none beyond the frames seen
+    assert _cuts(tmp_path) == [20, 40, 60, 80]
+
+
+def test_checkpoint_cuts_stay_bounded_without_the_jump_limit(tmp_path):
+    """With ``max_frame_jump`` off, frames far ahead on both inputs still give at most one cut per
+    message and no recursion (they made the pose cells save ~495 cuts, then die of RecursionError)."""
+    frames = 100
+    w = _pose_cells_worker(tmp_path, max_frame_jump=0)
+    _drive(w, frames, 50, [("odom", _odo(10**15)), ("visual_template", _tpl(10**6, 3))])
+    st = _stats(w)
+    assert st["received"] == 2 * frames + 2
+    assert len(_cuts(tmp_path)) <= st["received"]
+    assert len(_cuts(tmp_path)) <= 10
+
+
+def test_an_output_beyond_int64_is_refused_by_the_codec():
+    with pytest.raises(MessageError, match="int64"):
+        encode(Message("odom", 2**63, 0.0, {"vtrans": 0.0, "vrot": 0.0}))
+
+
+# ------------------------------------------------------------------------------ 4. rows as they come
+def _template_msg(f: int) -> Message:
+    return Message(VISUAL_TEMPLATE, f, f * 0.1, {"id": f % 4, "is_loop_closure": f % 3 == 0,
+                                                 "best_interval": f % 4 - 1, "best_score": f * 2})
+
+
+def _pose_msg(f: int) -> Message:
+    return Message(EXPERIENCE_POSE, f, f * 0.1, {"pose": np.array([0.1 * f, -0.2 * f, 0.3 * f - 2]),
+                                                 "exp_id": f // 5})
+
+
+def _expected(tmp_path: Path, frames: list[int]) -> tuple[str, str]:
+    """The files as the recorder wrote them at the end of a run before (whole, from its rows)."""
+    rows = "".join(f"{f},{f * 0.1:.6f},{f % 4},{int(f % 3 == 0)},{f % 4 - 1},{f * 2}\n" for f in frames)
+    ref = tmp_path / "ref.tum"
+    write_tum(ref, [(f * 0.1, 0.1 * f, -0.2 * f, 0.3 * f - 2) for f in frames])
+    return TEMPLATES_HEADER + rows, ref.read_text()
+
+
+def _recorder(run_dir: Path, run_id: str = "run-1") -> RecorderNode:
+    rec = RecorderNode()
+    rec.run_dir, rec.run_id = str(run_dir), run_id
+    return rec
+
+
+def _feed(rec: RecorderNode, frames) -> None:
+    for f in frames:
+        rec.process(VISUAL_TEMPLATE, _template_msg(f))
+        rec.process(EXPERIENCE_POSE, _pose_msg(f))
+
+
+def _files(run_dir: Path) -> tuple[str, str]:
+    return (run_dir / "templates.csv").read_text(), (run_dir / "trajectory.tum").read_text()
+
+
+def test_the_recorder_appends_each_row_when_it_comes_with_the_same_bytes(tmp_path):
+    run = tmp_path / "run"
+    rec = _recorder(run, run_id="")  # in-process: no journal
+    _feed(rec, range(7))
+    assert _files(run) == _expected(tmp_path, list(range(7)))  # before the end of the run
+    _feed(rec, range(7, 12))
+    rec.flush()
+    rec.close()
+    assert _files(run) == _expected(tmp_path, list(range(12)))
+    assert not (run / JOURNAL).exists()
+
+
+def test_a_restarted_recorder_keeps_the_rows_written_before_its_crash(tmp_path):
+    run = tmp_path / "run"
+    first = _recorder(run)
+    _feed(first, range(10))  # then killed: no flush, no close
+    # a crash mid-row: half a trajectory row, and a journal entry for a row that never came
+    with open(run / "trajectory.tum", "a") as fh:
+        fh.write("1.000000 0.1")
+    with open(run / JOURNAL, "a") as fh:
+        fh.write("t 10\n")
+    # restarted from scratch (no checkpoint); the upstream replays frames 6..9 before new ones
+    second = _recorder(run)
+    _feed(second, range(6, 15))
+    second.flush()
+    second.close()
+    assert _files(run) == _expected(tmp_path, list(range(15)))
+    assert second.counters["rows_already_written"] == 2 * 4
+
+
+def test_a_recorder_restarted_from_a_checkpoint_adds_the_rows_of_its_state_not_written(tmp_path):
+    run = tmp_path / "run"
+    first = _recorder(run)
+    _feed(first, range(8))
+    state = first.state_dict()  # the checkpoint: rows of frames 0..7
+    _feed(first, range(8, 12))  # written, then killed
+    # rows 10 and 11 never reached the trajectory file (e.g. a full disk): cut them
+    lines = (run / "trajectory.tum").read_text().splitlines(keepends=True)
+    (run / "trajectory.tum").write_text("".join(lines[:10]))
+    second = _recorder(run)
+    second.load_state_dict(state)
+    _feed(second, range(12, 16))
+    second.flush()
+    second.close()
+    templates, trajectory = _files(run)
+    exp_t, _ = _expected(tmp_path, list(range(16)))
+    assert templates == exp_t  # every row written before the crash kept, each once
+    _, exp_p = _expected(tmp_path, [*range(10), *range(12, 16)])
+    assert trajectory == exp_p  # 10, 11: neither written nor in the restored state
+
+
+def test_a_new_run_in_the_same_folder_starts_the_files_afresh(tmp_path):
+    run = tmp_path / "run"
+    first = _recorder(run, "run-1")
+    _feed(first, range(5))
+    first.flush()
+    first.close()
+    second = _recorder(run, "run-2")
+    _feed(second, range(3))
+    second.flush()
+    second.close()
+    assert _files(run) == _expected(tmp_path, list(range(3)))
+
+
+# ------------------------------------------------------------------------------ 5. disk full
+def _disk_full_after(monkeypatch, fail: dict) -> None:
+    """``write_all`` writes half of what it is given, then fails with ENOSPC, while fail["on"]."""
+    real = files_mod.write_all
+
+    def write_all(fd, data):
+        if fail["on"]:
+            os.write(fd, bytes(data)[: len(data) // 2])
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real(fd, data)
+
+    monkeypatch.setattr(files_mod, "write_all", write_all)
+
+
+def test_a_full_disk_never_empties_map_json_nor_tears_a_row(tmp_path, monkeypatch, caplog):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "map.json").write_text('{"nodes": [], "links": []}')  # from an earlier flush
+    fail = {"on": False}
+    _disk_full_after(monkeypatch, fail)
+    monkeypatch.setattr(RecorderNode, "RETRY_S", 0.0)
+    rec = _recorder(run)
+    _feed(rec, range(4))
+    fail["on"] = True
+    with caplog.at_level(logging.ERROR, logger="neoslam.recorder"):
+        _feed(rec, range(4, 8))  # these wait
+        rec.process(EXPERIENCE_MAP, Message(EXPERIENCE_MAP, 7, 0.7, {"export": {"nodes": [1], "links": []}}))
+        rec.flush()
+    # the earlier map is intact, no temporary file is left, the files hold whole rows only
+    assert (run / "map.json").read_text() == '{"nodes": [], "links": []}'
+    assert sorted(p.name for p in run.iterdir()) == sorted(["map.json", "templates.csv", "trajectory.tum", JOURNAL])
+    assert _files(run) == _expected(tmp_path, list(range(4)))
+    assert rec.counters["write_errors"] >= 3 and rec.info()["rows_not_written"] == 8
+    logged = [r.message for r in caplog.records]
+    assert any(m.startswith(f"recorder: disk full writing {run / 'map.json'}: ") for m in logged)
+    assert len([m for m in logged if "disk full writing" in m and "map.json" in m]) == 1  # once
+    # space comes back: the rows that waited are written, in order, and the map
+    fail["on"] = False
+    rec.flush()
+    rec.close()
+    assert _files(run) == _expected(tmp_path, list(range(8)))
+    assert (run / "map.json").read_text() == '{"nodes": [1], "links": []}'
+
+
+def test_a_full_disk_costs_a_checkpoint_not_the_stage(tmp_path, monkeypatch, caplog):
+    fail = {"on": True}
+    _disk_full_after(monkeypatch, fail)
+    w = _worker(tmp_path, NodeSpec("probe", f"{__name__}:make_probe"), checkpoint_every=2)
+    with caplog.at_level(logging.ERROR, logger="neoslam.worker"):
+        for f in range(10):
+            w.handle("probe", _probe(f), time.time())
+    st = _stats(w)
+    assert st["processed"] == 10 and st["errors"] == 0 and st["internal_errors"] == 0
+    assert st["counters"]["write_errors"] == 4  # cuts 2, 4, 6, 8
+    assert len([r for r in caplog.records if "disk full writing" in r.message]) == 1
+    leftovers = [p for p in (tmp_path / "checkpoint").rglob("*") if p.is_file()]
+    assert leftovers == []  # no torn or temporary state file
+    fail["on"] = False
+    w.handle("probe", _probe(10), time.time())
+    saved = sorted(p.relative_to(tmp_path / "checkpoint") for p in (tmp_path / "checkpoint").rglob("*.state"))
+    assert saved == [Path("000000010") / "probe.state"]
+
+
+# ------------------------------------------------------------------------------ 4. a real crash
+@pytest.mark.slow
+@pytest.mark.zenoh
+def test_killing_the_experience_map_without_checkpoints_keeps_the_trajectory_written(tmp_path):
+    import json
+
+    from runhelpers import attach, finish, start_run, wait_stats
+
+    from neoslam_stream.evaluation import read_tum
+
+    run_dir = tmp_path / "run"
+    cfg = {"run": {"pipeline": "neoslam", "topology": "pipeline", "mode": "realtime", "live": False,
+                   "startup_timeout": 240, "max_restarts": 1},
+           "source": {"kind": "synthetic", "params": {"seed": 0, "loop": True}, "rate": 10.0,
+                      "pacing": "fixed", "duration": 30.0},
+           "features": {"backbone": "random_alexnet"}, "projector": {"projection": "sparse"},
+           "pose_cells": {"pc_dim_xy": 11}}
+    proc = start_run(tmp_path, cfg)
+    session, run_id = attach(run_dir)
+    try:
+        st = wait_stats(session, run_id, "recorder", until=lambda s: s["info"].get("trajectory_rows", 0) >= 40)
+        os.kill(st["pid"], signal.SIGKILL)
+        rows_before = st["info"]["trajectory_rows"]
+        wait_stats(session, run_id, "experience_map",
+                   until=lambda s, pid=st["pid"]: s["pid"] != pid and s.get("processed", 0) > 0)
+    finally:
+        session.close()
+    out = finish(proc, timeout=600)
+    assert proc.returncode == 0, out
+    rep = json.loads((run_dir / "report.json").read_text())
+    assert rep["restarts"] == {"experience_map": 1}
+    traj = read_tum(run_dir / "trajectory.tum")
+    # the rows written before the crash are there: the trajectory starts at the run's first frames
+    assert traj[0, 0] < 0.5
+    # and every row of the restarted recorder after them, none twice, none out of order
+    after = rep["stages"]["recorder"]["info"]["trajectory_rows"]
+    assert after > 0 and len(traj) >= rows_before + after
+    assert np.all(np.diff(traj[:, 0]) > 0)
+    rows = (run_dir / "templates.csv").read_text().splitlines()[1:]
+    frames = [int(r.split(",")[0]) for r in rows]
+    assert frames[0] < 5 and frames == sorted(set(frames))

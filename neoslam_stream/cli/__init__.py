@@ -129,11 +129,31 @@ def print_summary(report: dict[str, Any]) -> None:
                   str(st["dropped"]), str(st["errors"]))
     con.print(t)
     fp = report.get("f_pipeline_predicted")
+    loss = report.get("loss")
+    # a loss that was not measured is said so: never a 0 that nobody counted
+    loss_text = "loss unknown" if loss is None else (
+        f"loss {100 * loss:.1f} % ({report.get('frames_lost', '?')} of {report.get('frames_expected', '?')} frames)")
     con.print(f"frames in {report.get('frames_in')}, out {report.get('frames_out')} "
-              f"(strided {report.get('frames_strided')}), loss {100 * report.get('loss', 0):.1f} %, "
+              f"(strided {report.get('frames_strided')}), {loss_text}, "
               f"f_in {report.get('f_in', 0):.2f} Hz, f_out {report.get('f_out', 0):.2f} Hz, "
               f"f_pipeline {fp if fp is None else round(fp, 2)} Hz (bottleneck {report.get('bottleneck')})")
+    causes = _loss_causes(report.get("loss_breakdown"))
+    if causes:
+        con.print(f"loss by cause: {causes}")
     con.print(f"run folder: {report.get('run_dir')}")
+
+
+def _loss_causes(breakdown: dict[str, Any] | None) -> str:
+    """One line of report.json's ``loss_breakdown``: the source's losses, each stage's refused /
+    dropped messages, and what no counter explains."""
+    if not breakdown:
+        return ""
+    parts = [f"source: {cause} {n}" for cause, n in (breakdown.get("source") or {}).items() if n]
+    for stage, b in (breakdown.get("stages") or {}).items():
+        parts += [f"{stage} {what.replace('_', ' ')} {n}" for what, n in b.items() if n]
+    if breakdown.get("unattributed"):
+        parts.append(f"in flight or lost while restarting {breakdown['unattributed']}")
+    return "; ".join(parts)
 
 
 def cmd_monitor(args: argparse.Namespace) -> int:

@@ -271,3 +271,50 @@ class Bus:
                 pass
         self._subscribers.clear()
         self._publishers.clear()
+
+
+class ControlGate:
+    """The check every process of a run makes before obeying a ``control`` message.
+
+    The control topic is a key on a bus that any local process can reach (the run's router
+    listens on loopback, tools attach to it); one ``stop`` put there used to end every worker of a
+    run. The supervisor therefore draws a random token per run and hands it to its children in
+    their spawn arguments (never over the bus); a control message is obeyed only when it carries
+    that token. Anything else is refused: counted per cause, logged once per cause, ignored.
+    """
+
+    MAX_CAUSES = 20
+
+    def __init__(self, token: str, who: str) -> None:
+        self.token = token
+        self.who = who
+        self.refused = 0
+        self.causes: dict[str, int] = {}
+
+    def check(self, payload: bytes) -> dict | None:
+        """The message's ``data`` when it is a control message with the run's token; else None
+        (the refusal is counted)."""
+        import hmac
+
+        from .messages import MessageError, decode
+
+        try:
+            data = decode(payload, expected_type="control").data
+        except MessageError as exc:
+            return self._refuse(f"not a control message: {str(exc)[:120]}")
+        token = data.get("token")
+        if not isinstance(token, str) or not token:
+            return self._refuse(f"command {str(data.get('command'))[:40]!r} without the run's token")
+        if not self.token or not hmac.compare_digest(token.encode(), self.token.encode()):
+            return self._refuse(f"command {str(data.get('command'))[:40]!r} with a wrong token")
+        return data
+
+    def _refuse(self, cause: str) -> None:
+        import logging
+
+        self.refused += 1
+        key = cause if cause in self.causes or len(self.causes) < self.MAX_CAUSES else "(other causes)"
+        if key not in self.causes:
+            logging.getLogger("neoslam.control").warning("%s: refused a control message: %s", self.who, cause)
+        self.causes[key] = self.causes.get(key, 0) + 1
+        return None

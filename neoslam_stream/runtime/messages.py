@@ -180,7 +180,9 @@ ODOM = Topic("odom", {
 })
 GROUNDTRUTH = Topic("groundtruth", {"pose": _POSE3})
 STATS = Topic("stats", {"stage": Field("str")})
-CONTROL = Topic("control", {"command": Field("str")})
+#: ``token``: the run's secret (see bus.ControlGate); ``target``: one process, or all when absent
+CONTROL = Topic("control", {"command": Field("str"), "token": Field("str", optional=True),
+                            "target": Field("str", optional=True)})
 EMULATED = Topic("emulated", {"payload": Field("array", optional=True)})
 
 _PY_KIND = {"int": (int,), "float": (int, float), "bool": (bool,), "str": (str,),

@@ -8,12 +8,17 @@ Figures (see docs/runtime.md for the definitions):
 * f_pipeline (paper eq. 2): min over worker processes of 1 / (sum of tau_i hosted in it), i.e.
   min_i 1/tau_i for the pipeline topology and 1/sum_i tau_i for the monolithic one (mean tau).
 * predicted loss = 1 - min(1, f_pipeline / f_in).
-* measured loss = 1 - frames_out / (frames_in - strided): frames published by the source that never
-  reached the final topic, not counting frames removed on purpose by ``frame_stride``.
-  A frame counts as arrived when a message of the final topic carries its number and its trace went
-  through the image entry stage (so odometry-only updates of the back end are not counted).
+* measured loss, counted by frame numbers: of the frames the camera produced (those the source
+  published, plus those lost in the source itself: its ring, gaps in its frame numbers, images it
+  could not publish), minus the frames removed on purpose by ``frame_stride``, the share that never
+  reached the final topic. A frame counts as arrived when a message of the final topic carries the
+  number of a frame the source published and its trace went through the image entry stage (so
+  odometry-only updates of the back end and messages injected by others are not counted).
+  Frames refused as bad input, dropped in a ring or in transport, lost while a worker restarted:
+  all are in this one figure (``loss``), with the breakdown by cause and stage beside it
+  (``loss_breakdown``). Without the source's stats the loss is unknown (``None``), never 0.
 * drops per stage: evicted from its input ring + messages its upstream published that never
-  arrived (transport drops).
+  arrived (transport drops). Counters add up over a restarted stage's lives (StatsCollector).
 
 The monitor runs as its own process during a run (live ``rich`` table, ``report.json`` and
 ``timeline.csv`` at the end) and ``neoslam monitor`` attaches to a running pipeline.
@@ -39,11 +44,55 @@ from .messages import MessageError, decode
 log = logging.getLogger("neoslam.monitor")
 
 
+#: counters of a stage's stats that add up over its lives (a restarted worker starts them at 0)
+CUMULATIVE = ("received", "processed", "errors", "internal_errors", "control_refused")
+CUMULATIVE_MAPS = ("error_causes", "internal_error_causes", "published", "counters", "control_refused_causes")
+
+
+def _add_maps(a: dict[str, Any], b: dict[str, Any]) -> dict[str, Any]:
+    out = dict(a)
+    for k, v in b.items():
+        if isinstance(v, (int, float)) and not isinstance(v, bool):
+            out[k] = out.get(k, 0) + v
+        elif k not in out:
+            out[k] = v
+    return out
+
+
+def _add_lives(earlier: dict[str, Any], now: dict[str, Any]) -> dict[str, Any]:
+    """The stats of a stage's current life plus the totals of its ``earlier`` lives."""
+    out = dict(now)
+    for k in CUMULATIVE:
+        if k in earlier or k in now:
+            out[k] = int(earlier.get(k, 0) or 0) + int(now.get(k, 0) or 0)
+    for k in CUMULATIVE_MAPS:
+        if k in earlier or k in now:
+            out[k] = _add_maps(earlier.get(k) or {}, now.get(k) or {})
+    inputs = {t: dict(i) for t, i in (now.get("inputs") or {}).items()}
+    for t, i in (earlier.get("inputs") or {}).items():
+        cur = inputs.setdefault(t, {"received": 0, "evicted": 0, "depth": 0})
+        cur["received"] = cur.get("received", 0) + i.get("received", 0)
+        cur["evicted"] = cur.get("evicted", 0) + i.get("evicted", 0)
+    if inputs or "inputs" in now:
+        out["inputs"] = inputs
+    return out
+
+
 class StatsCollector:
-    """Keeps the newest ``stats/<stage>`` message of every stage and a short history of each."""
+    """Keeps the newest ``stats/<stage>`` message of every stage and a short history of each.
+
+    A stage whose stats come from a new pid was restarted: its counters start again at 0, so the
+    last stats of its earlier lives are kept and added (``received``, ``processed``, errors,
+    drops...; ``incarnations`` says how many lives). Without this, a restart made the report
+    compare the new life's ``received`` with everything its upstream ever published.
+    """
 
     def __init__(self) -> None:
         self.latest: dict[str, dict[str, Any]] = {}
+        #: per stage: the newest stats of its current life as sent, and the sum of earlier lives
+        self.raw: dict[str, dict[str, Any]] = {}
+        self.earlier: dict[str, dict[str, Any]] = {}
+        self.lives: dict[str, int] = {}
         self.prev: dict[str, dict[str, Any]] = {}
         self.first_seen: dict[str, float] = {}
         self.changed_at: dict[str, float] = {}
@@ -63,6 +112,17 @@ class StatsCollector:
             return
         now = time.monotonic()
         with self.lock:
+            raw_old = self.raw.get(name)
+            if raw_old is None:
+                self.lives[name] = 1
+            elif data.get("pid") is not None and raw_old.get("pid") not in (None, data.get("pid")):
+                self.earlier[name] = _add_lives(self.earlier.get(name, {}), raw_old)
+                self.lives[name] = self.lives.get(name, 1) + 1
+            self.raw[name] = dict(data)
+            if name in self.earlier:
+                data = _add_lives(self.earlier[name], data)
+            data = dict(data)
+            data["incarnations"] = self.lives[name]
             old = self.latest.get(name)
             if old is not None:
                 self.prev[name] = old
@@ -170,6 +230,11 @@ def build_report(stats: dict[str, dict[str, Any]], final: FinalTracker,
 
     stage_rows: dict[str, Any] = {}
     strided = 0
+    refused: dict[str, int] = {}
+    refused_causes: dict[str, int] = {}
+    if src:
+        refused["source"] = int(src.get("control_refused", 0))
+        refused_causes = _add_maps(refused_causes, src.get("control_refused_causes") or {})
     for wname, names in workers.items():
         for name in names:
             st = stats.get(name)
@@ -182,8 +247,12 @@ def build_report(stats: dict[str, dict[str, Any]], final: FinalTracker,
             active = max(1e-9, st.get("time", 0) - st.get("started", 0))
             counters = st.get("counters", {})
             strided += int(counters.get("strided", 0))
+            if name == names[0]:  # a worker's counts ride on its first stage's stats
+                refused[wname] = int(st.get("control_refused", 0))
+                refused_causes = _add_maps(refused_causes, st.get("control_refused_causes") or {})
             stage_rows[name] = {
-                "worker": wname,
+                "worker": wname, "incarnations": st.get("incarnations", 1),
+                "internal_errors": st.get("internal_errors", 0),
                 "tau_mean_ms": st.get("tau_mean_ms", 0.0), "tau_p50_ms": st.get("tau_p50_ms", 0.0),
                 "tau_p95_ms": st.get("tau_p95_ms", 0.0), "tau_max_ms": st.get("tau_max_ms", 0.0),
                 "queue_p50_ms": st.get("queue_p50_ms", 0.0), "queue_p95_ms": st.get("queue_p95_ms", 0.0),
@@ -211,9 +280,8 @@ def build_report(stats: dict[str, dict[str, Any]], final: FinalTracker,
         bottleneck = workers[bottleneck_worker][0]
     else:
         bottleneck = bottleneck_worker
-    frames_out = len(final.frames)
-    expected = max(0, frames_in - strided)
-    loss = 1.0 - frames_out / expected if expected > 0 else 0.0
+    acct = loss_accounting(src, final, stage_rows, strided) if src else None
+    frames_out = acct["frames_out"] if acct else len(final.frames)
     errors = sum(r.get("errors", 0) for r in stage_rows.values()) + int(src.get("errors", 0))
     # memory per worker process (its stages report the same process's figures)
     firsts = [stage_rows[names[0]] for names in workers.values() if names and names[0] in stage_rows
@@ -226,7 +294,13 @@ def build_report(stats: dict[str, dict[str, Any]], final: FinalTracker,
         **meta,
         "f_in": f_in, "frames_in": frames_in, "frames_out": frames_out, "frames_strided": strided,
         "duration_s": duration, "f_out": frames_out / duration if duration > 0 else 0.0,
-        "loss": max(0.0, loss), "loss_percent": max(0.0, loss) * 100,
+        # the one headline loss (None: not measured, e.g. the source never reported)
+        "loss": acct["loss"] if acct else None,
+        "loss_percent": acct["loss"] * 100 if acct and acct["loss"] is not None else None,
+        "frames_lost": acct["frames_lost"] if acct else None,
+        "frames_lost_at_source": acct["frames_lost_at_source"] if acct else None,
+        "frames_expected": acct["frames_expected"] if acct else None,
+        "loss_breakdown": acct["breakdown"] if acct else None,
         "f_pipeline_predicted": f_pipeline if np.isfinite(f_pipeline) else None,
         "predicted_loss": (1.0 - min(1.0, f_pipeline / f_in)) if f_in > 0 and np.isfinite(f_pipeline) else None,
         "bottleneck": bottleneck, "bottleneck_tau_ms": tau_b,
@@ -237,8 +311,59 @@ def build_report(stats: dict[str, dict[str, Any]], final: FinalTracker,
         "source": src.get("info", {}),
         "stages": stage_rows,
         "memory": memory,
+        # control messages without the run's token, per process (workers, source)
+        "control_refused": refused, "control_refused_causes": refused_causes,
     }
     return report
+
+
+def _in_ranges(frame: int, starts: list[int], ranges: list[list[int]]) -> bool:
+    import bisect
+
+    i = bisect.bisect_right(starts, frame) - 1
+    return i >= 0 and ranges[i][0] <= frame <= ranges[i][1]
+
+
+def loss_accounting(src: dict[str, Any], final: FinalTracker, stage_rows: dict[str, Any],
+                    strided: int) -> dict[str, Any]:
+    """Loss by frame numbers, with its causes.
+
+    ``frames_out``: frames the source published (its ``published_ranges``) that reached the final
+    topic. ``frames_expected``: frames the camera produced (published + lost in the source) minus
+    the strided ones. ``frames_lost`` = expected - out; ``loss`` = lost / expected. The
+    breakdown: the source's losses per cause, and per stage the messages it refused as bad input,
+    lost to an internal error, evicted from its ring or lost in transport (counted over every life
+    of the stage); ``unattributed`` is what no counter explains (frames in flight when a worker
+    died or at the end of a real-time run). Stage counts are messages on a stage's inputs (its
+    odometry too), so they explain the loss, they do not add up to it.
+    """
+    ranges = sorted([int(a), int(b)] for a, b in (src.get("published_ranges") or []))
+    if ranges:
+        starts = [r[0] for r in ranges]
+        with final.lock:
+            frames_out = sum(1 for f in final.frames if _in_ranges(f, starts, ranges))
+    else:  # a source that does not say which frames it published (an older one)
+        frames_out = len(final.frames)
+    frames_in = int(src.get("frames_in", 0))
+    lost_src = {str(k): int(v) for k, v in (src.get("lost_at_source") or {}).items()}
+    at_source = sum(lost_src.values())
+    expected = max(0, frames_in + at_source - strided)
+    lost = max(0, expected - frames_out)
+    stages: dict[str, Any] = {}
+    attributed = at_source
+    for name, row in stage_rows.items():
+        if row.get("missing"):
+            continue
+        b = {"refused": int(row.get("errors", 0)), "internal_errors": int(row.get("internal_errors", 0)),
+             "dropped_queue": int(row.get("dropped_queue", 0)),
+             "dropped_transport": int(row.get("dropped_transport", 0))}
+        if any(b.values()):
+            stages[name] = b
+            attributed += sum(b.values())
+    breakdown = {"source": lost_src, "stages": stages, "unattributed": max(0, lost - attributed)}
+    return {"frames_out": frames_out, "frames_expected": expected, "frames_lost": lost,
+            "frames_lost_at_source": at_source, "loss": lost / expected if expected > 0 else 0.0,
+            "breakdown": breakdown}
 
 
 def stats_table(stats: dict[str, dict[str, Any]], title: str = "neoslam") -> Any:
@@ -281,6 +406,8 @@ class MonitorSpec:
     final_wait_s: float = 10.0
     #: seconds between two lines of stats.jsonl
     snapshot_every_s: float = 5.0
+    #: the run's control secret (bus.ControlGate): control messages without it are refused
+    control_token: str = ""
 
 
 def write_timeline_row(writer: Any, t0: float, stats: dict[str, dict[str, Any]]) -> None:
@@ -314,6 +441,20 @@ def stats_snapshot(t0: float, stats: dict[str, dict[str, Any]]) -> dict[str, Any
                        for name, st in stats.items() if name != "source"}}
 
 
+def write_report(path: str | Path, report: dict[str, Any]) -> bool:
+    """Write ``report`` as JSON atomically (files.write_atomic): a full disk leaves the previous
+    report.json as it was and is said in the log; True when written."""
+    from .files import describe_write_error, write_atomic
+
+    try:
+        write_atomic(path, json.dumps(report, indent=2, default=_json_default).encode())
+    except OSError as exc:
+        log.error("report not written: %s (the previous report, if any, is intact)",
+                  describe_write_error(path, exc))
+        return False
+    return True
+
+
 def run_monitor(spec: MonitorSpec) -> None:
     """Monitor process: collect until told to stop, then write report.json and timeline.csv."""
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s monitor %(levelname)s %(message)s")
@@ -326,12 +467,13 @@ def run_monitor(spec: MonitorSpec) -> None:
     subs = [session.declare_subscriber(key_for(spec.run, "stats/**"), collector.on_sample),
             session.declare_subscriber(key_for(spec.run, spec.final_topic), final.on_sample)]
 
+    from .bus import ControlGate
+
+    gate = ControlGate(spec.control_token, "monitor")
+
     def _on_control(sample: Any) -> None:
-        try:
-            msg = decode(sample.payload.to_bytes(), expected_type="control")
-        except MessageError:
-            return
-        if msg.data["command"] == "stop" and msg.data.get("target") == "monitor":
+        data = gate.check(sample.payload.to_bytes())  # None: not from this run's supervisor
+        if data is not None and data["command"] == "stop" and data.get("target") == "monitor":
             stop.set()
 
     subs.append(session.declare_subscriber(key_for(spec.run, "control"), _on_control))
@@ -346,9 +488,14 @@ def run_monitor(spec: MonitorSpec) -> None:
         live = Live(stats_table({}), refresh_per_second=1, transient=False)
         live.start()
     last_snapshot = 0.0
-    with open(run_dir / "timeline.csv", "w", newline="") as fh, open(run_dir / "stats.jsonl", "w") as jfh:
+    # appended, not truncated: a restarted monitor (its first life was killed) keeps what the
+    # first one wrote; the supervisor starts the files afresh for a new run in the same folder
+    timeline = run_dir / "timeline.csv"
+    fresh = not timeline.exists() or timeline.stat().st_size == 0
+    with open(timeline, "a", newline="") as fh, open(run_dir / "stats.jsonl", "a") as jfh:
         writer = csv.writer(fh)
-        writer.writerow(TIMELINE_HEADER)
+        if fresh:
+            writer.writerow(TIMELINE_HEADER)
         while not stop.wait(1.0):
             snap = collector.snapshot()
             write_timeline_row(writer, t0, snap)
@@ -373,9 +520,8 @@ def run_monitor(spec: MonitorSpec) -> None:
         live.update(stats_table(snap, f"neoslam run {spec.run}"))
         live.stop()
     report = build_report(snap, final, spec.workers, spec.meta)
-    tmp = run_dir / "report.json.tmp"
-    tmp.write_text(json.dumps(report, indent=2, default=_json_default))
-    tmp.replace(run_dir / "report.json")
+    report["control_refused_monitor"] = gate.refused
+    write_report(run_dir / "report.json", report)
     token.undeclare()
     for s in subs:
         s.undeclare()

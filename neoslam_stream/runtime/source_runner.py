@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import signal
 import sys
 import threading
@@ -33,7 +34,7 @@ import numpy as np
 
 from ..sources.base import Source
 from ..tum import write_tum
-from .bus import Bus, key_for, open_session, wait_for_peers, wait_for_subscribers
+from .bus import Bus, ControlGate, key_for, open_session, wait_for_peers, wait_for_subscribers
 from .messages import Message, MessageError, decode, encode
 from .node import load_factory
 
@@ -83,13 +84,18 @@ class SourceRunSpec:
     wait_topics: list[str] = field(default_factory=lambda: ["image"])
     #: pause between "everyone is linked" and the first frame
     settle_s: float = 1.0
+    #: the run's control secret (bus.ControlGate): control messages without it are refused
+    control_token: str = ""
 
 
 class _Progress:
-    """Frames seen on the final topic (credit window and end-of-run drain)."""
+    """Frames seen on the final topic (credit window and end-of-run drain). ``start_frame``: the
+    first frame this run publishes (a resumed run starts at its checkpoint's cut): the credit
+    window counts from there, not from 0, or the first frame would wait ``stall_timeout`` for
+    frames that will never come."""
 
-    def __init__(self) -> None:
-        self.last_frame = -1
+    def __init__(self, start_frame: int = 0) -> None:
+        self.last_frame = start_frame - 1
         self.count = 0
         self.last_change = time.monotonic()
         self.cond = threading.Condition()
@@ -171,15 +177,13 @@ def run_source(spec: SourceRunSpec) -> None:
         sys.exit(3)
     session = open_session(spec.listen, spec.connect, spec.shm)
     bus = Bus(session, spec.run, spec.lossless)
-    progress = _Progress()
+    progress = _Progress(spec.start_frame)
+    gate = ControlGate(spec.control_token, "source")
     bus.subscribe_callback(key_for(spec.run, spec.final_topic), progress.on_sample)
 
     def _on_control(sample: Any) -> None:
-        try:
-            msg = decode(sample.payload.to_bytes(), expected_type="control")
-        except Exception:
-            return
-        if msg.data["command"] == "stop" and msg.data.get("target") in (None, "source"):
+        data = gate.check(sample.payload.to_bytes())  # None: not from this run's supervisor
+        if data is not None and data["command"] == "stop" and data.get("target") in (None, "source"):
             stop.set()
 
     bus.subscribe_callback(key_for(spec.run, "control"), _on_control)
@@ -206,6 +210,20 @@ def run_source(spec: SourceRunSpec) -> None:
     # the source's own faults (unreadable records, a truncated file, a frame that cannot be
     # encoded): counted per cause, logged once, reported like a stage's errors
     errors: dict[str, int] = {}
+    # which frames were published, as [first, last] ranges of frame numbers (the monitor counts
+    # loss by frame numbers: a frame published and never seen on the final topic is lost), and
+    # the frames the camera produced that never left the source, per cause
+    ranges: list[list[int]] = []
+    lost: dict[str, int] = {}
+    GAP = "gap in the source's frame numbers (frames it skipped)"
+    RING = "source ring full (camera faster than the run: oldest frames dropped)"
+    UNPUBLISHABLE = "image not publishable"
+
+    def mark_published(frame: int) -> None:
+        if ranges and frame == ranges[-1][1] + 1:
+            ranges[-1][1] = frame
+        elif len(ranges) < 100_000:  # bounded: a source numbering at random costs no memory
+            ranges.append([frame, frame])
 
     def record_error(cause: str) -> None:
         cause = cause[:300]
@@ -222,7 +240,13 @@ def run_source(spec: SourceRunSpec) -> None:
         causes = dict(errors)
         for cause, n in dict(getattr(source, "errors", {}) or {}).items():  # records the source skipped
             causes[cause] = causes.get(cause, 0) + int(n)
-        data = {"stage": "source", "frames_in": counts["image"], "odom": counts["odom"],
+        lost_now = dict(lost)
+        ring = info.get("dropped") if isinstance(info, dict) else None
+        if isinstance(ring, int) and not isinstance(ring, bool) and ring > 0:
+            lost_now[RING] = ring
+        data = {"stage": "source", "pid": os.getpid(), "frames_in": counts["image"], "odom": counts["odom"],
+                "published_ranges": [list(r) for r in ranges], "lost_at_source": lost_now,
+                "control_refused": gate.refused, "control_refused_causes": dict(gate.causes),
                 "errors": sum(causes.values()), "error_causes": causes,
                 "groundtruth": counts["groundtruth"], "first_publish": first_pub,
                 "last_publish": last_pub, "last_frame": last_frame, "done": done or final,
@@ -247,10 +271,25 @@ def run_source(spec: SourceRunSpec) -> None:
     t0: float | None = None
     stamp0: float | None = None
     n_sent = 0
+    #: frames read, from frame 0 (those below ``start_frame`` too): ``max_frames`` bounds the run's
+    #: frame count, so a resumed run stops where the uninterrupted run would have
+    n_read = 0
+    prev_frame: int | None = None
     # what the source published, for evaluation: ground truth and dead-reckoned wheel odometry
     gt_rows: list[tuple[float, float, float, float]] = []
     odo_rows: list[tuple[float, float, float, float]] = []
     ox = oy = oth = 0.0
+
+    def record_rows(sf: Any, gt_ok: bool, odom_ok: bool) -> None:
+        nonlocal ox, oy, oth
+        if sf.groundtruth is not None and gt_ok:
+            gt_rows.append((sf.stamp, *sf.groundtruth))
+        if sf.odom is not None and odom_ok:
+            vt, vr, dt = sf.odom
+            oth += vr * dt
+            ox += vt * dt * math.cos(oth)
+            oy += vt * dt * math.sin(oth)
+            odo_rows.append((sf.stamp, ox, oy, oth))
     publish_stats()  # "linked and about to read": tools waiting for the source see it now
 
     # stats go out on their own clock: a live source may wait a long time for its next frame
@@ -266,10 +305,18 @@ def run_source(spec: SourceRunSpec) -> None:
         for sf in _guarded(source, record_error):
             if stop.is_set():
                 break
-            if sf.frame < spec.start_frame:
-                continue
-            if spec.max_frames is not None and n_sent >= spec.max_frames:
+            if spec.max_frames is not None and n_read >= spec.max_frames:
                 break
+            n_read += 1
+            if prev_frame is not None and sf.frame > prev_frame + 1 and sf.frame > spec.start_frame:
+                # frames the source numbered but never yielded (an unreadable record...): lost
+                lost[GAP] = lost.get(GAP, 0) + sf.frame - max(prev_frame + 1, spec.start_frame)
+            prev_frame = sf.frame if prev_frame is None else max(prev_frame, sf.frame)
+            if sf.frame < spec.start_frame:
+                # not published (the resumed state holds them), but in groundtruth.tum and
+                # odometry.tum like in the run it continues: its trajectory starts at frame 0 too
+                record_rows(sf, True, True)
+                continue
             if t0 is None:
                 t0 = time.monotonic()
             if spec.duration is not None and time.monotonic() - t0 >= spec.duration:
@@ -301,18 +348,15 @@ def run_source(spec: SourceRunSpec) -> None:
                     payload = encode(msg)
                 except (MessageError, ValueError, TypeError) as exc:  # e.g. NaN odometry, a bad stamp
                     record_error(f"{topic} of frame {sf.frame} not published: {type(exc).__name__}: {exc}")
+                    if topic == "image":
+                        lost[UNPUBLISHABLE] = lost.get(UNPUBLISHABLE, 0) + 1
                     continue
                 bus.put(topic, payload)
                 counts[topic] += 1
                 sent.add(topic)
-            if sf.groundtruth is not None and "groundtruth" in sent:
-                gt_rows.append((sf.stamp, *sf.groundtruth))
-            if sf.odom is not None and "odom" in sent:
-                vt, vr, dt = sf.odom
-                oth += vr * dt
-                ox += vt * dt * math.cos(oth)
-                oy += vt * dt * math.sin(oth)
-                odo_rows.append((sf.stamp, ox, oy, oth))
+                if topic == "image":
+                    mark_published(sf.frame)
+            record_rows(sf, "groundtruth" in sent, "odom" in sent)
             first_pub = now if first_pub is None else first_pub
             last_pub = now
             last_frame = sf.frame

@@ -10,8 +10,15 @@ Every child is a zenoh peer that listens on its own loopback port and connects t
 started before it (a full mesh, so frames go directly from producer to consumer). The supervisor
 (this process) is a zenoh router on its own port, so a tool attaching in client mode to that one
 endpoint (``neoslam monitor RUN_DIR``, tests injecting messages) reaches every process. It waits until every worker announced readiness, starts the
-source, restarts a crashed worker (bounded, reported), detects the end of the run (source done and
-the pipeline drained), stops everything in order and completes ``report.json``.
+source, restarts a crashed worker or monitor (bounded, reported), detects the end of the run
+(source done and the pipeline drained), stops everything in order and completes ``report.json``.
+
+Hardening (#13): every child dies with the supervisor (procs.follow_parent: it gets the
+supervisor's pid in its spawn arguments); control messages carry a per-run secret token, handed to
+the children in their specs and never sent alone over the bus, and every process refuses (and
+counts) control messages without it (bus.ControlGate); the supervisor follows the stats and the
+final topic itself, so the report's loss is measured over the whole run even when the monitor was
+killed and restarted, and it writes report.json atomically (a full disk keeps the previous one).
 """
 
 from __future__ import annotations
@@ -34,7 +41,7 @@ from ..sources import source_factory
 from .bus import ZENOH_CONFIG_ENV, free_port, key_for, open_session
 from .checkpoint import cut_dir, latest_complete_cut, latest_stage_state
 from .messages import Message, encode
-from .monitor import MonitorSpec, StatsCollector
+from .monitor import FinalTracker, MonitorSpec, StatsCollector, build_report, write_report
 from .node import NodeSpec
 from .procs import monitor_entry, source_entry, worker_entry
 from .source_runner import SourceRunSpec, SourceSpec
@@ -102,6 +109,9 @@ class Supervisor:
         self.plan = plan
         self.name, self.run_dir = make_run_dir(cfg, run_dir)
         self.run_id = f"r{secrets.token_hex(4)}"
+        #: the control topic's secret: only this supervisor's commands are obeyed (bus.ControlGate)
+        self.control_token = secrets.token_hex(16)
+        self.final = FinalTracker(entry_stages=set(plan.entry_stages))
         self.lossless = cfg.run.mode == "lossless"
         self.ctx = mp.get_context("spawn")
         self.groups = group_workers(self.plan, cfg.run.topology)
@@ -169,7 +179,8 @@ class Supervisor:
             max_batch=self.cfg.run.max_batch if self.lossless else 1, log_level=self.cfg.run.log_level,
             resume_states=resume_states, expected_peers=self.order.index(wname), map_path=self.map_path,
             checkpoint_every=self.cfg.run.checkpoint_every,
-            checkpoint_dir=str(self.run_dir / "checkpoint") if self.cfg.run.checkpoint_every else "")
+            checkpoint_dir=str(self.run_dir / "checkpoint") if self.cfg.run.checkpoint_every else "",
+            control_token=self.control_token)
 
     def source_spec(self, start_frame: int = 0) -> SourceRunSpec:
         src = self.cfg.source
@@ -186,7 +197,8 @@ class Supervisor:
             max_frames=src.max_frames, duration=src.duration, window=self.cfg.bus.window,
             final_topic=self.plan.final_topic, progress=self.cfg.run.live, start_frame=start_frame,
             expected_peers=len(self.order) - 1,
-            wait_topics=list(getattr(self.plan, "consumed_source_topics", ["image"])))
+            wait_topics=list(getattr(self.plan, "consumed_source_topics", ["image"])),
+            control_token=self.control_token)
 
     def monitor_spec(self) -> MonitorSpec:
         listen, connect = self._links("monitor")
@@ -197,11 +209,12 @@ class Supervisor:
                            entry_stages=self.plan.entry_stages,
                            workers={w: [s.name for s in specs] for w, specs in self.groups.items()},
                            meta=meta, listen=listen, connect=connect, shm=self.cfg.bus.shm,
-                           live=self.cfg.run.live)
+                           live=self.cfg.run.live, control_token=self.control_token)
 
     # ------------------------------------------------------------------ processes
     def _start(self, name: str, target: Any, spec: Any) -> None:
-        p = self.ctx.Process(target=target, args=(spec,), name=f"neoslam-{name}", daemon=False)
+        # the supervisor's pid: the child stops when this process dies (procs.follow_parent)
+        p = self.ctx.Process(target=target, args=(spec, os.getpid()), name=f"neoslam-{name}", daemon=False)
         p.start()
         self.procs[name] = p
 
@@ -234,7 +247,7 @@ class Supervisor:
             time.sleep(0.2)
 
     def _control(self, command: str, target: str | None = None, **extra: Any) -> None:
-        data = {"command": command, **extra}
+        data = {"command": command, "token": self.control_token, **extra}
         if target is not None:
             data["target"] = target
         self.session.put(key_for(self.run_id, "control"), encode(Message("control", 0, time.time(), data)))
@@ -267,6 +280,11 @@ class Supervisor:
         self.collector = StatsCollector()
         stats_sub = self.session.declare_subscriber(key_for(self.run_id, "stats/**"),
                                                     self.collector.on_sample)
+        # the supervisor's own count of the frames that arrived: it outlives a killed monitor
+        final_sub = self.session.declare_subscriber(key_for(self.run_id, self.plan.final_topic),
+                                                    self.final.on_sample)
+        for name in ("timeline.csv", "stats.jsonl"):  # the monitor appends (it may be restarted)
+            (self.run_dir / name).unlink(missing_ok=True)
         interrupted = False
         try:
             self._start("monitor", monitor_entry, self.monitor_spec())
@@ -284,6 +302,7 @@ class Supervisor:
         finally:
             self._shutdown()
             stats_sub.undeclare()
+            final_sub.undeclare()
             self.session.close()
             signal.signal(signal.SIGINT, old_int)
             signal.signal(signal.SIGTERM, old_term)
@@ -307,6 +326,7 @@ class Supervisor:
             if self.interrupts:
                 return True
             self._restart_crashed()
+            self._restart_monitor()
             src = self.collector.snapshot().get("source", {})
             source_proc = self.procs["source"]
             if not source_proc.is_alive() and source_proc.exitcode not in (0, None) and not src.get("done"):
@@ -344,6 +364,28 @@ class Supervisor:
                                f"{n} times; giving up")
             self._restart(w, p.exitcode)
             self._wait_ready([w], self.cfg.run.startup_timeout)
+
+    def _restart_monitor(self) -> None:
+        """A dead monitor is started again (bounded, reported like a worker's restart). Its figures
+        are not lost: the supervisor follows the stats and the final topic itself."""
+        p = self.procs.get("monitor")
+        if p is None or p.is_alive():
+            return
+        n = self.restarts.get("monitor", 0)
+        if n >= self.cfg.run.max_restarts:
+            if not getattr(self, "_monitor_given_up", False):
+                self._monitor_given_up = True
+                log.error("the monitor died (exit code %s) and was already restarted %d times; the run "
+                          "goes on without it (the supervisor still writes the report)", p.exitcode, n)
+            return
+        log.warning("the monitor died with exit code %s; restarting (%d/%d)", p.exitcode, n + 1,
+                    self.cfg.run.max_restarts)
+        self.restarts["monitor"] = n + 1
+        self.restart_events.append({"worker": "monitor", "time_s": round(time.time() - self.t_start, 3),
+                                    "exit_code": p.exitcode, "resumed_from_cut": None,
+                                    "frames_in_at_restart": self.collector.snapshot().get("source", {})
+                                    .get("frames_in")})
+        self._start("monitor", monitor_entry, self.monitor_spec())
 
     def _restart(self, w: str, exitcode: int | None) -> None:
         """Start worker ``w`` again, with each stage's newest checkpointed state when there is one."""
@@ -407,11 +449,21 @@ class Supervisor:
                     p.join(2)
 
     def _complete_report(self, interrupted: bool) -> dict[str, Any]:
+        """report.json: the monitor's (when it wrote one in this run), with every figure the
+        supervisor measured itself on top: the stats and final frames over the whole run, whatever
+        happened to the monitor. Written atomically; a full disk keeps the previous file."""
         path = self.run_dir / "report.json"
-        if path.exists():
-            report = json.loads(path.read_text())
-        else:
-            report = {"error": "the monitor wrote no report"}
+        report: dict[str, Any] = {}
+        try:
+            if path.stat().st_mtime >= self.t_start - 1:  # not a report of an earlier run here
+                report = json.loads(path.read_text())
+        except (OSError, ValueError):
+            pass
+        if not report:
+            report["monitor_report"] = "the monitor wrote no report; figures measured by the supervisor"
+        meta = self.monitor_spec().meta
+        workers = {w: [s.name for s in specs] for w, specs in self.groups.items()}
+        report.update(build_report(self.collector.snapshot(), self.final, workers, meta))
         report["restarts"] = dict(self.restarts)
         report["restart_events"] = list(self.restart_events)
         report["signal"] = self.last_signal if interrupted else None
@@ -419,9 +471,7 @@ class Supervisor:
         report["interrupted"] = interrupted
         report["run_dir"] = str(self.run_dir)
         report["workers"] = {w: [s.name for s in specs] for w, specs in self.groups.items()}
-        tmp = path.with_suffix(".json.tmp")
-        tmp.write_text(json.dumps(report, indent=2))
-        os.replace(tmp, path)
+        write_report(path, report)
         return report
 
 

@@ -17,8 +17,10 @@ per cause), it is counted apart under ``internal_errors`` / ``internal_error_cau
 message is skipped; the worker goes on with the node's state as it is (a restart would lose that
 state without checkpoints, and the message that triggered the bug would not come again). A failed
 checkpoint write (disk full) is logged once and counted under the node's ``write_errors`` counter;
-the stage goes on. SIGINT/SIGTERM or a ``control`` message ``stop`` end it cleanly: queued
-messages are processed, nodes flushed, outputs and final stats published.
+the stage goes on. SIGINT/SIGTERM (also sent when the supervisor dies, see procs.follow_parent) or
+a ``control`` message ``stop`` carrying the run's token (bus.ControlGate; others are counted under
+``control_refused`` and ignored) end it cleanly: queued messages are processed, nodes flushed,
+outputs and final stats published.
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from .bus import Bus, InputQueue, key_for, open_session, wait_for_peers
+from .bus import Bus, ControlGate, InputQueue, key_for, open_session, wait_for_peers
 from .files import describe_write_error
 from .messages import Message, MessageError, decode, encode
 from .node import Node, NodeSpec, is_input_error
@@ -80,6 +82,8 @@ class WorkerSpec:
     #: refused as bad input (one message must not make a stage jump its frame counter, checkpoint
     #: cuts or buffers to the end of time); 0 = no limit
     max_frame_jump: int = 100_000
+    #: the run's control secret (bus.ControlGate): control messages without it are refused
+    control_token: str = ""
 
 
 class ServiceStats:
@@ -198,6 +202,7 @@ class Worker:
         self.queue: InputQueue | None = None
         self._started = time.time()
         self._proc = None
+        self.control = ControlGate(spec.control_token, f"worker {spec.name}")
 
     # ------------------------------------------------------------------ set-up
     def build(self) -> None:
@@ -266,13 +271,11 @@ class Worker:
             key_for(self.spec.run, f"alive/{self.spec.name}"))
 
     def _on_control(self, sample: Any) -> None:
-        try:
-            msg = decode(sample.payload.to_bytes(), expected_type="control")
-        except MessageError as exc:
-            log.warning("worker %s: bad control message: %s", self.spec.name, exc)
+        data = self.control.check(sample.payload.to_bytes())
+        if data is None:  # not from this run's supervisor: counted, ignored
             return
-        target = msg.data.get("target")
-        if msg.data["command"] == "stop" and (target in (None, self.spec.name)):
+        target = data.get("target")
+        if data["command"] == "stop" and (target in (None, self.spec.name)):
             self.stop_requested = True
             if self.queue is not None and not self.spec.lossless:
                 self.queue.close()
@@ -333,16 +336,19 @@ class Worker:
                 ready_r.append(r)
         return ready_m, ready_r
 
-    def _release_cut(self, idx: int) -> None:
+    def _release_cut(self, idx: int, budget: int = 1) -> None:
         """Save the cut once every input has reached it (or too much is held), then process what
         was held. A loop, not a recursion: each round saves one cut and hands every held message
         below the next cut to the node; the cut saved is the newest one the held messages and the
         inputs' progress allow, so frames far ahead never make it save every multiple of N on the
         way (at most one cut per round, and a round ends with a held message processed or with
-        the stage waiting for an input)."""
+        the stage waiting for an input). At most ``budget`` rounds (the number of messages that
+        came in): one message makes at most one cut folder, whatever its frame number; what is
+        still held waits for the next message (each round processes at least the lowest held
+        message, so the held list stays bounded)."""
         st = self.stages[idx]
         n = self.spec.checkpoint_every
-        while st.deferred:
+        while st.deferred and budget > 0:
             cut = (st.checkpoint_index + 1) * n
             reached = all(st.reached.get(t, -1) >= cut for t in st.ordered_inputs)
             if not reached and len(st.deferred) < self.MAX_DEFERRED:
@@ -355,6 +361,7 @@ class Worker:
             cut = max(cut, bound // n * n)
             st.checkpoint_index = cut // n
             self._save_cut(st, cut)
+            budget -= 1
             held, st.deferred = st.deferred, []
             for t, m, r in held:  # in arrival order; the next cut may hold some of them again
                 ready_m, ready_r = self._hold_for_cut(idx, t, [m], [r])
@@ -386,10 +393,11 @@ class Worker:
             return
         st.received += len(msgs)
         if self.spec.checkpoint_every > 0 and len(st.inputs) > 1:
+            n_in = len(msgs)
             msgs, received = self._hold_for_cut(idx, topic, msgs, received)
             if msgs:
                 self._process(idx, topic, msgs, received)
-            self._release_cut(idx)
+            self._release_cut(idx, budget=n_in)
             return
         self._maybe_checkpoint(st, min(m.frame for m in msgs))
         self._process(idx, topic, msgs, received)
@@ -525,6 +533,9 @@ class Worker:
                     "consumes": list(st.inputs), "last_frame": st.last_frame,
                     "info": info, "cpu_percent": cpu, "cpu_s": cpu_s, "rss_mb": rss, "pss_mb": pss,
                     "final": final,
+                    # per process: the worker's first stage carries it (the report sums processes)
+                    "control_refused": self.control.refused if i == 0 else 0,
+                    "control_refused_causes": dict(self.control.causes) if i == 0 else {},
                     "n_stages_in_worker": len(self.stages), **st.times.summary()}
             out.append(Message("stats", 0, now, data))
         return out

@@ -390,3 +390,52 @@ def test_16_bit_and_big_endian_images_through_the_cdr_parser():
     m = parse_image(bytes(ts.serialize_cdr(_image_msg(ts, 1, flat, "mono16", False), "sensor_msgs/msg/Image")))
     assert m["image"].max() == 0
     assert math.isfinite(float(m["image"].mean()))
+
+
+def test_large_raw_and_compressed_frames_in_a_bag_are_resized(tmp_path):
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from neoslam_stream.sources.bag import BagSource
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    T = ts.types
+    wide = _big_scene(4000, 300)
+    small = _big_scene(64, 48)
+    path = tmp_path / "big"
+    with Writer(path, version=8, storage_plugin=StoragePlugin.MCAP) as wr:
+        ci = wr.add_connection("/cam/compressed", "sensor_msgs/msg/CompressedImage", typestore=ts)
+        for k, img in enumerate((wide, small)):
+            hdr = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=k + 1, nanosec=0),
+                                           frame_id="cam")
+            jpg = cv2.imencode(".jpg", img)[1].reshape(-1)
+            wr.write(ci, (k + 1) * 10**9, ts.serialize_cdr(
+                T["sensor_msgs/msg/CompressedImage"](header=hdr, format="jpeg", data=jpg),
+                "sensor_msgs/msg/CompressedImage"))
+    frames = _frames(BagSource(str(next(path.glob("*.mcap"))), image_topic="/cam/compressed", max_side=1000))
+    # the large one decoded (at 1/4 scale) and resized at the source, the small one passed on as it is
+    assert frames[0].image is not None and frames[0].image.shape == (75, 1000, 3)
+    want = cv2.resize(wide, (1000, 75), interpolation=cv2.INTER_AREA)[:, :, ::-1]
+    assert np.abs(frames[0].image.astype(int) - want.astype(int)).mean() < 4.0
+    assert frames[1].image is None and frames[1].compressed[:2] == b"\xff\xd8"
+    # a raw frame: resized the same way
+    raw = np.ascontiguousarray(wide[:, :, 0])
+    path2 = tmp_path / "raw"
+    with Writer(path2, version=8, storage_plugin=StoragePlugin.MCAP) as wr:
+        c = wr.add_connection("/cam", "sensor_msgs/msg/Image", typestore=ts)
+        hdr = T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](sec=1, nanosec=0), frame_id="cam")
+        wr.write(c, 10**9, ts.serialize_cdr(T["sensor_msgs/msg/Image"](
+            header=hdr, height=300, width=4000, encoding="mono8", is_bigendian=0, step=4000,
+            data=raw.reshape(-1)), "sensor_msgs/msg/Image"))
+    (f,) = _frames(BagSource(str(next(path2.glob("*.mcap"))), image_topic="/cam", max_side=1000))
+    np.testing.assert_array_equal(f.image, cv2.resize(raw, (1000, 75), interpolation=cv2.INTER_AREA))
+
+
+def test_visual_odometry_pipelines_do_not_take_the_source_odometry():
+    """With ``odometry: visual`` the pipeline makes its own odometry: the source's (a folder's
+    zero motion, a bag's odometry topic) is not published, or each frame would have two."""
+    from neoslam_stream.config import FullRunConfig
+    from neoslam_stream.nodes.pipelines import build_ratslam
+
+    assert build_ratslam(FullRunConfig()).consumed_source_topics == ["image", "odom"]
+    assert build_ratslam(FullRunConfig(odometry="visual")).consumed_source_topics == ["image"]

@@ -3,24 +3,68 @@ poses in: sources (ground truth, odometry), the recorder (trajectory.tum) and th
 
 from __future__ import annotations
 
+import logging
+import math
 from pathlib import Path
 
 import numpy as np
 
+log = logging.getLogger("neoslam.tum")
+
+
+def _parse_line(text: str) -> tuple[float, float, float, float] | str:
+    """(t, x, y, yaw) of one data line, or why it cannot be used."""
+    fields = text.replace(",", " ").split()
+    if len(fields) < 8:
+        return f"TUM lines need 8 values (t x y z qx qy qz qw), got {len(fields)}"
+    values: list[float] = []
+    for name, field in zip(("t", "x", "y", "z", "qx", "qy", "qz", "qw"), fields[:8], strict=True):
+        try:
+            v = float(field)
+        except ValueError:
+            return f"{name} = {field[:40]!r} is not a number"
+        if not math.isfinite(v):  # NaN/inf would poison every pose integrated after it
+            return f"{name} = {field[:40]} is NaN or infinite"
+        values.append(v)
+    t, x, y, _z, qx, qy, qz, qw = values
+    # numpy's atan2, as before: the yaw of every file read stays bit-identical
+    yaw = float(np.arctan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz)))
+    return t, x, y, yaw
+
+
+def read_tum_rows(path: str | Path) -> tuple[np.ndarray, list[tuple[int, str]]]:
+    """Every data line of a TUM file: an (n, 4) array of stamp, x, y, yaw with one row per data
+    line (a row that cannot be used is all NaN, so that row i still belongs to image i), and
+    ``(row index, cause)`` for each such row; the cause names the file and its line number.
+
+    Accepted: a UTF-8 byte-order mark, blank lines, comments (``#``, indented or not), commas
+    between values, extra columns. Refused rows: fewer than 8 values, a value that is not a
+    number, any NaN or infinite value (the quaternion's included).
+    """
+    path = Path(path)
+    text = path.read_bytes().decode("utf-8-sig", errors="replace")
+    rows: list[tuple[float, float, float, float]] = []
+    errors: list[tuple[int, str]] = []
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        parsed = _parse_line(s)
+        if isinstance(parsed, str):
+            errors.append((len(rows), f"{path.name} line {lineno}: {parsed}: row skipped"))
+            rows.append((math.nan,) * 4)
+        else:
+            rows.append(parsed)
+    return np.array(rows, dtype=np.float64).reshape(-1, 4), errors
+
 
 def read_tum(path: str | Path) -> np.ndarray:
-    """(n, 4) array of stamp, x, y, yaw from a TUM file (``t x y z qx qy qz qw``)."""
-    rows = []
-    for line in Path(path).read_text().splitlines():
-        if not line.strip() or line.startswith("#"):
-            continue
-        p = [float(v) for v in line.replace(",", " ").split()]
-        if len(p) < 8:
-            raise ValueError(f"{path}: TUM lines need 8 values, got {len(p)}")
-        t, x, y, _z, qx, qy, qz, qw = p[:8]
-        yaw = np.arctan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz))
-        rows.append((t, x, y, yaw))
-    return np.array(rows, dtype=np.float64).reshape(-1, 4)
+    """(n, 4) array of stamp, x, y, yaw from a TUM file (``t x y z qx qy qz qw``): the usable
+    rows only; each skipped row is logged with its line number (:func:`read_tum_rows`)."""
+    rows, errors = read_tum_rows(path)
+    for _i, cause in errors:
+        log.warning("%s", cause)
+    return rows[np.isfinite(rows).all(axis=1)] if errors else rows
 
 
 def write_tum(path: str | Path, rows: np.ndarray) -> None:

@@ -38,6 +38,12 @@ def _backend_specs(cfg: Any, specs: list[NodeSpec]) -> None:
                           observer=True))
 
 
+def _source_topics(cfg: Any) -> list[str]:
+    """The source topics the back end reads: the source's odometry, unless the pipeline measures
+    visual odometry itself (then the source's is not published: one odometry per frame)."""
+    return ["image"] if cfg.odometry == "visual" else ["image", "odom"]
+
+
 def neoslam_feature_params(cfg: Any) -> tuple[dict[str, Any], dict[str, Any]]:
     """Stage A's and B's parameters, with ``backbone: auto`` decided here so that B knows its
     input size (the dimension of the backbone that will run)."""
@@ -66,7 +72,7 @@ def build_neoslam(cfg: Any) -> PipelinePlan:
              NodeSpec("D", "neoslam_stream.nodes.spatial_view:make_node", cfg.spatial_view.model_dump())]
     _backend_specs(cfg, specs)
     return PipelinePlan(specs, final_topic="experience_map/pose", entry_stages=["A"],
-                        consumed_source_topics=["image", "odom"])
+                        consumed_source_topics=_source_topics(cfg))
 
 
 def build_ratslam(cfg: Any) -> PipelinePlan:
@@ -74,7 +80,7 @@ def build_ratslam(cfg: Any) -> PipelinePlan:
     specs = [NodeSpec("local_view", f"{RATSLAM_NODES}:make_local_view_node", cfg.local_view.model_dump())]
     _backend_specs(cfg, specs)
     return PipelinePlan(specs, final_topic="experience_map/pose", entry_stages=["local_view"],
-                        consumed_source_topics=["image", "odom"])
+                        consumed_source_topics=_source_topics(cfg))
 
 
 RATSLAM_BRANCH_TOPICS = ("visual_template", "pose_cells/action", "experience_map/pose", "experience_map/map")

@@ -80,7 +80,9 @@ class SourceRunSpec:
     stats_hz: float = 2.0
     #: processes (workers, monitor, supervisor) to be linked to before the first frame
     expected_peers: int = 0
-    #: topics that must have a matching subscriber before the first frame (the entry stages')
+    #: the source topics the pipeline consumes: each must have a matching subscriber before the
+    #: first frame; ``odom`` is published only when listed (a pipeline that measures visual
+    #: odometry publishes its own, and a second odometry of the same frame would be refused)
     wait_topics: list[str] = field(default_factory=lambda: ["image"])
     #: pause between "everyone is linked" and the first frame
     settle_s: float = 1.0
@@ -344,6 +346,8 @@ def run_source(spec: SourceRunSpec) -> None:
             now = time.time()
             sent: set[str] = set()
             for topic, msg in frame_messages(sf, now):
+                if topic == "odom" and "odom" not in spec.wait_topics:
+                    continue
                 try:
                     payload = encode(msg)
                 except (MessageError, ValueError, TypeError) as exc:  # e.g. NaN odometry, a bad stamp

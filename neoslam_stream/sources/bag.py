@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from .base import Source, SourceFrame
+from .imaging import DEFAULT_MAX_SIDE, ImageEncodingError, decode_bounded, fit, needs_resize, ros_image
 
 EARTH_RADIUS = 6378137.0
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
@@ -64,20 +65,21 @@ def interpolate_pose(table: np.ndarray, t: float, max_gap: float) -> tuple[float
     return (float(x), float(y), float(math.remainder(th, 2 * math.pi)))
 
 
-def image_from_msg(msg: Any, msgtype: str) -> dict[str, Any]:
-    """SourceFrame image fields of a sensor_msgs Image / CompressedImage."""
+def image_from_msg(msg: Any, msgtype: str, max_side: int | None = DEFAULT_MAX_SIDE) -> dict[str, Any]:
+    """SourceFrame image fields of a sensor_msgs Image / CompressedImage: 16-bit and big-endian
+    encodings become 8-bit frames, frames beyond ``max_side`` pixels are resized (:mod:`.imaging`).
+    Raises :class:`~.imaging.ImageEncodingError` for an encoding or a layout that cannot be used."""
     if msgtype.endswith("CompressedImage"):
         fmt = "png" if "png" in str(msg.format).lower() else "jpeg"
-        return {"compressed": bytes(msg.data), "format": fmt}
-    enc = str(msg.encoding).lower()
-    channels = {"rgb8": 3, "bgr8": 3, "mono8": 1, "8uc1": 1, "rgba8": 4, "bgra8": 4, "8uc3": 3}.get(enc)
-    if channels is None:
-        raise ValueError(f"image encoding {msg.encoding!r} is not supported (rgb8, bgr8, mono8, rgba8, bgra8)")
-    data = np.asarray(msg.data, dtype=np.uint8)
-    h, w, step = int(msg.height), int(msg.width), int(msg.step)
-    rows = data[: h * step].reshape(h, step)[:, : w * channels]
-    img = rows.reshape(h, w, channels) if channels > 1 else rows.reshape(h, w)
-    return {"image": np.ascontiguousarray(img), "encoding": "mono8" if channels == 1 else enc}
+        data = bytes(msg.data)
+        if needs_resize(data, max_side):  # decoded here, at a reduced scale for a JPEG
+            bgr = decode_bounded(data, max_side)
+            if bgr is not None:
+                return {"image": np.ascontiguousarray(bgr[:, :, ::-1]), "encoding": "rgb8"}
+        return {"compressed": data, "format": fmt}
+    img, enc = ros_image(msg.data, int(msg.height), int(msg.width), int(msg.step), str(msg.encoding),
+                         bool(msg.is_bigendian))
+    return {"image": np.ascontiguousarray(fit(img, max_side)), "encoding": enc}
 
 
 class BagSource(Source):
@@ -88,12 +90,16 @@ class BagSource(Source):
     (at least one; each is checked against the bag's topics and their types when the source is
     built). ``max_frames`` stops early. ``typestore``: the rosbags type store for bags that carry no
     message definitions (ROS 2). ``groundtruth_max_gap_s``: how far before the first / after the
-    last ground-truth sample a frame still gets the nearest one.
+    last ground-truth sample a frame still gets the nearest one. ``max_side``: frames whose long
+    side exceeds it are resized. An image that cannot be used (an unsupported encoding, data
+    shorter than its header says) is counted as a source error with its cause and skipped; its
+    motion goes to the next frame.
     """
 
     def __init__(self, path: str, image_topic: str | None = None, odom_topic: str | None = None,
                  groundtruth_topic: str | None = None, max_frames: int | None = None,
-                 typestore: str = "ROS2_HUMBLE", groundtruth_max_gap_s: float = 5.0) -> None:
+                 typestore: str = "ROS2_HUMBLE", groundtruth_max_gap_s: float = 5.0,
+                 max_side: int | None = DEFAULT_MAX_SIDE) -> None:
         from rosbags.highlevel import AnyReader
         from rosbags.typesys import Stores, get_typestore
 
@@ -105,6 +111,7 @@ class BagSource(Source):
             raise ValueError("name at least one of image_topic, odom_topic, groundtruth_topic")
         self._typestore = get_typestore(getattr(Stores, typestore))
         self.max_frames = max_frames
+        self.max_side = max_side
         self.groundtruth_max_gap_s = groundtruth_max_gap_s
         self.salvaged: str | None = None
         self._open: Any = lambda: AnyReader([self.path], default_typestore=self._typestore)
@@ -152,6 +159,13 @@ class BagSource(Source):
                     last_odom_t = t
                 if conn.topic != frame_topic:
                     continue
+                fields: dict[str, Any] = {}
+                if conn.topic == self.topics["image"]:
+                    try:
+                        fields = image_from_msg(msg, conn.msgtype, self.max_side)
+                    except ImageEncodingError as exc:  # skipped before its motion is taken
+                        self.record_error(f"image on {conn.topic} skipped: {exc}")
+                        continue
                 if last_odom_t is not None and conn.topic != self.topics["odom"] and t > last_odom_t:
                     acc_d += v * (t - last_odom_t)  # integrate up to the frame's stamp
                     acc_th += w * (t - last_odom_t)
@@ -162,7 +176,6 @@ class BagSource(Source):
                     odom = (acc_d / dt, acc_th / dt, dt) if dt > 0 else (0.0, 0.0, 0.0)
                 acc_d = acc_th = 0.0
                 prev_frame_t = t
-                fields = image_from_msg(msg, conn.msgtype) if conn.topic == self.topics["image"] else {}
                 gt = None if table is None else interpolate_pose(table, t, self.groundtruth_max_gap_s)
                 yield SourceFrame(frame=frame, stamp=t, odom=odom, groundtruth=gt, **fields)
                 frame += 1

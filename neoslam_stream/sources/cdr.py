@@ -2,8 +2,9 @@
 
 ``parse_image`` is a small zero-copy parser for sensor_msgs/msg/Image (the pixel array is a view on
 the payload, far cheaper than rosbags' generic deserialiser: bench/sources.py measures both);
-other types go through rosbags' CDR deserialiser. Big-endian and XCDR2
-payloads, unknown types and unsupported encodings raise :class:`CdrError` with the cause.
+other types go through rosbags' CDR deserialiser. 16-bit image encodings (``is_bigendian``
+honoured) become 8-bit frames (:mod:`.imaging`). Big-endian CDR and XCDR2 payloads, unknown
+types and unsupported encodings raise :class:`CdrError` with the cause.
 """
 
 from __future__ import annotations
@@ -12,6 +13,8 @@ import struct
 from typing import Any
 
 import numpy as np
+
+from .imaging import ImageEncodingError, ros_image
 
 CDR_LE = b"\x00\x01"
 SUPPORTED_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage", "nav_msgs/msg/Odometry")
@@ -78,21 +81,22 @@ def parse_image(payload: bytes | memoryview) -> dict[str, Any]:
     encoding = string().lower()
     if pos >= len(buf):
         raise CdrError("truncated Image payload")
-    pos += 1  # is_bigendian: every supported encoding has 8-bit channels, which have no byte order
+    is_bigendian = buf[pos] != 0  # the byte order of 16-bit channels
+    pos += 1
     step = u32()
     n = u32()
     if pos + n > len(buf):
         raise CdrError(f"Image data claims {n} bytes, payload has {len(buf) - pos}")
-    channels = {"rgb8": 3, "bgr8": 3, "mono8": 1, "8uc1": 1, "rgba8": 4, "bgra8": 4, "8uc3": 3}.get(encoding)
-    if channels is None:
-        raise CdrError(f"image encoding {encoding!r} is not supported (rgb8, bgr8, mono8, rgba8, bgra8)")
-    if step < width * channels or n < height * step:
+    if n < height * step:
         raise CdrError(f"Image of {width}x{height} {encoding} with step {step} does not fit {n} data bytes")
-    data = np.frombuffer(buf, dtype=np.uint8, count=height * step, offset=pos).reshape(height, step)
-    img = data[:, : width * channels]
-    img = img.reshape(height, width, channels) if channels > 1 else img
+    try:
+        # 8-bit: a zero-copy view of the payload; 16-bit: converted to 8-bit (see .imaging)
+        img, enc = ros_image(np.frombuffer(buf, dtype=np.uint8, count=height * step, offset=pos),
+                             height, width, step, encoding, is_bigendian)
+    except ImageEncodingError as exc:
+        raise CdrError(str(exc)) from None
     return {"stamp": sec + nsec * 1e-9, "frame_id": frame_id, "height": height, "width": width,
-            "encoding": "mono8" if channels == 1 else encoding, "step": step, "image": img}
+            "encoding": enc, "step": step, "image": img}
 
 
 def decode(payload: bytes | memoryview, msgtype: str) -> Any:

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import errno
+import logging
 import math
+import os
+import stat
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -10,12 +14,17 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ..runtime.imageinfo import too_large, truncation
-from ..tum import read_tum
+from ..runtime.messages import MAX_MESSAGE_BYTES
+from ..tum import read_tum_rows
 from .bag import interpolate_pose
 from .base import Source, SourceFrame
+from .imaging import DEFAULT_MAX_SIDE, decode_bounded, fit
+
+log = logging.getLogger("neoslam.sources.files")
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".ppm", ".pgm")
+#: an image file larger than a message may be is refused before it is read
+MAX_FILE_BYTES = MAX_MESSAGE_BYTES
 
 
 def odometry_between(odo: np.ndarray, t0: float, t1: float) -> tuple[float, float, float]:
@@ -33,6 +42,59 @@ def odometry_between(odo: np.ndarray, t0: float, t1: float) -> tuple[float, floa
     return dist / dt, dth / dt, dt
 
 
+def _file_kind(mode: int) -> str:
+    for test, name in ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
+                       (stat.S_ISSOCK, "a socket"), (stat.S_ISCHR, "a character device"),
+                       (stat.S_ISBLK, "a block device")):
+        if test(mode):
+            return name
+    return "not a regular file"
+
+
+def read_image_file(path: Path, max_bytes: int = MAX_FILE_BYTES) -> bytes | str:
+    """The bytes of a regular file, or why it cannot be used as an image (a string).
+
+    Never opens anything but a regular file: a FIFO would block the reader until a writer
+    comes, a device could stream forever. The check is made on the path (``stat`` follows
+    symbolic links: a loop or a dangling link fails there) and again on the opened descriptor,
+    which is opened non-blocking, so a file swapped for a FIFO in between cannot block either.
+    """
+    try:
+        st = os.stat(path)
+    except OSError as exc:
+        if os.path.islink(path) and exc.errno == errno.ENOENT:
+            return f"dangling symbolic link (to {os.readlink(path)!r})"
+        return exc.strerror or type(exc).__name__
+    if not stat.S_ISREG(st.st_mode):
+        return f"{_file_kind(st.st_mode)}, not an image file"
+    if st.st_size > max_bytes:
+        return f"{st.st_size} bytes, more than the {max_bytes} an image message may hold"
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0))
+    except OSError as exc:
+        return exc.strerror or type(exc).__name__
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):  # replaced after the first check
+            return f"{_file_kind(st.st_mode)}, not an image file"
+        chunks = []
+        left = min(st.st_size, max_bytes) + 1  # a file growing meanwhile is read up to the limit
+        while left > 0:
+            chunk = os.read(fd, min(left, 1 << 20))
+            if not chunk:
+                break
+            chunks.append(chunk)
+            left -= len(chunk)
+        data = b"".join(chunks)
+        if len(data) > max_bytes:
+            return f"more than the {max_bytes} bytes an image message may hold"
+        return data
+    except OSError as exc:
+        return exc.strerror or type(exc).__name__
+    finally:
+        os.close(fd)
+
+
 class ImageFolderSource(Source):
     """Images of a folder in name order (``images/`` inside it if present), with optional
     ``odometry.tum`` and ``groundtruth.tum`` (or the files named by ``odometry`` / ``groundtruth``).
@@ -40,11 +102,20 @@ class ImageFolderSource(Source):
     ``odometry.tum`` holds one odometry pose per image (row i belongs to image i): it gives the
     frame stamps (else ``frame / rate_hz``) and each frame's (vtrans, vrot, dt) as the motion
     between consecutive poses. Ground truth is interpolated at each frame's stamp (any rate).
+    Without an odometry file every frame carries zero motion ``(0, 0, dt)`` (one warning when
+    the source is built): the back end then runs on the views alone; ``odometry: visual`` in the
+    config measures motion from the images instead.
+
+    Files that are no image files (a directory, a FIFO, a symbolic-link loop or a dangling link,
+    an unreadable file) are counted as source errors with their path and reason and skipped;
+    the frames stay numbered without gaps, and a skipped file's motion goes to the next frame.
+    Images whose long side exceeds ``max_side`` pixels are resized (a JPEG decoded at a reduced
+    scale), see :mod:`.imaging`.
     """
 
     def __init__(self, path: str, rate_hz: float = 10.0, odometry: str | None = None,
                  groundtruth: str | None = None, max_frames: int | None = None,
-                 groundtruth_max_gap_s: float = 5.0) -> None:
+                 groundtruth_max_gap_s: float = 5.0, max_side: int | None = DEFAULT_MAX_SIDE) -> None:
         root = Path(path)
         if not root.is_dir():
             raise FileNotFoundError(f"image folder {root} does not exist")
@@ -55,13 +126,28 @@ class ImageFolderSource(Source):
         if max_frames:
             self.files = self.files[:max_frames]
         self.rate_hz = rate_hz
+        self.max_side = max_side
         self.length = len(self.files)
         odo_path = Path(odometry) if odometry else root / "odometry.tum"
         gt_path = Path(groundtruth) if groundtruth else root / "groundtruth.tum"
-        self.odo = read_tum(odo_path) if odo_path.exists() else None
-        self.gt = read_tum(gt_path) if gt_path.exists() else None
-        if self.gt is not None:  # sorted, headings unwrapped: ready for interpolation in time
-            self.gt = self.gt[np.argsort(self.gt[:, 0], kind="stable")]
+        self.odo: np.ndarray | None = None
+        self.gt: np.ndarray | None = None
+        if odo_path.exists():
+            # one row per data line, bad rows NaN (row i belongs to image i): counted here, with
+            # their line numbers, and their frames carry no motion
+            self.odo, errors = read_tum_rows(odo_path)
+            for _i, cause in errors:
+                self.record_error(cause)
+        else:
+            log.warning("no odometry file (%s): every frame carries zero motion; use `odometry: visual` "
+                        "to measure motion from the images", odo_path)
+        if gt_path.exists():
+            gt, errors = read_tum_rows(gt_path)
+            for _i, cause in errors:
+                self.record_error(cause)
+            # sorted, headings unwrapped: ready for interpolation in time
+            gt = gt[np.isfinite(gt).all(axis=1)]
+            self.gt = gt[np.argsort(gt[:, 0], kind="stable")]
             self.gt[:, 3] = np.unwrap(self.gt[:, 3])
         self.groundtruth_max_gap_s = groundtruth_max_gap_s
         self.root = root
@@ -69,13 +155,20 @@ class ImageFolderSource(Source):
     def __iter__(self) -> Iterator[SourceFrame]:
         prev_t: float | None = None
         prev_row: np.ndarray | None = None
+        frame = 0
         for i, f in enumerate(self.files):
+            raw = read_image_file(f)
+            if isinstance(raw, str):  # no image file: nothing is published, nothing moves
+                self.record_error(f"image file {f} skipped: {raw}")
+                continue
             t = i / self.rate_hz if prev_t is None else prev_t + 1.0 / self.rate_hz
             odom = gt = None
-            if self.odo is not None and i < len(self.odo):
+            if self.odo is None:
+                odom = (0.0, 0.0, 0.0 if prev_t is None else t - prev_t)
+            elif i < len(self.odo):
                 row = self.odo[i]
                 if not np.all(np.isfinite(row)):
-                    self.record_error(f"odometry row {i} holds NaN or infinite values: skipped")
+                    pass  # counted when the file was read, with its line number
                 elif prev_row is not None and row[0] <= prev_row[0]:
                     self.record_error(f"odometry row {i}: stamp {row[0]:.6f} is not after the previous "
                                       f"{prev_row[0]:.6f}: skipped")
@@ -85,35 +178,34 @@ class ImageFolderSource(Source):
                     odom = odometry_between(np.stack([prev_row, row]), float(prev_row[0]), t) \
                         if prev_row is not None else (0.0, 0.0, 0.0)
                     prev_row = row
-            raw = f.read_bytes()
-            # a header claiming gigapixels is passed on undecoded: the stage refuses it with its
-            # cause instead of the decoder allocating the whole frame here
-            img = None
-            if raw and not too_large(raw) and truncation(raw) is None:
-                try:
-                    img = cv2.imdecode(np.frombuffer(raw, np.uint8), cv2.IMREAD_COLOR)
-                except cv2.error:
-                    img = None
+            # a header claiming gigapixels, or bytes that do not decode, are passed on undecoded:
+            # the stage refuses them with their cause instead of the decoder allocating here
+            img = decode_bounded(raw, self.max_side)
             if self.gt is not None:
                 gt = interpolate_pose(self.gt, t, self.groundtruth_max_gap_s)
             prev_t = t
-            if img is None:  # unreadable file: pass the bytes on, the stage reports the fault
-                yield SourceFrame(i, t, compressed=raw, format=f.suffix.lstrip("."), odom=odom,
+            if img is None:
+                yield SourceFrame(frame, t, compressed=raw, format=f.suffix.lstrip("."), odom=odom,
                                   groundtruth=gt)
-                continue
-            yield SourceFrame(i, t, image=np.ascontiguousarray(img[:, :, ::-1]), encoding="rgb8", odom=odom,
-                              groundtruth=gt)
+            else:
+                yield SourceFrame(frame, t, image=np.ascontiguousarray(img[:, :, ::-1]), encoding="rgb8",
+                                  odom=odom, groundtruth=gt)
+            frame += 1
 
     def info(self) -> dict[str, Any]:
         return {"kind": "folder", "path": str(self.root), "frames": self.length,
-                "odometry": self.odo is not None, "groundtruth": self.gt is not None}
+                "odometry": self.odo is not None, "groundtruth": self.gt is not None,
+                "max_side": self.max_side}
 
 
 class VideoSource(Source):
-    """Frames of a video file (OpenCV), stamped by the container's frame rate."""
+    """Frames of a video file (OpenCV), stamped by the container's frame rate; frames whose long
+    side exceeds ``max_side`` pixels are resized."""
 
-    def __init__(self, path: str, rate_hz: float | None = None, max_frames: int | None = None) -> None:
+    def __init__(self, path: str, rate_hz: float | None = None, max_frames: int | None = None,
+                 max_side: int | None = DEFAULT_MAX_SIDE) -> None:
         self.path = Path(path)
+        self.max_side = max_side
         if not self.path.is_file():
             raise FileNotFoundError(f"video file {self.path} does not exist")
         cap = cv2.VideoCapture(str(self.path))
@@ -134,6 +226,7 @@ class VideoSource(Source):
                 ok, bgr = cap.read()
                 if not ok:
                     break
+                bgr = fit(bgr, self.max_side)
                 yield SourceFrame(i, i / self.rate_hz, image=np.ascontiguousarray(bgr[:, :, ::-1]), encoding="rgb8")
                 i += 1
         finally:

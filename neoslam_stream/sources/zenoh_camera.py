@@ -29,6 +29,7 @@ from ..runtime.messages import MessageError
 from ..runtime.messages import decode as decode_message
 from .base import Source, SourceFrame
 from .cdr import CdrError, decode
+from .imaging import DEFAULT_MAX_SIDE, decode_bounded, fit, needs_resize
 
 log = logging.getLogger("neoslam.sources.zenoh")
 
@@ -95,16 +96,20 @@ class ZenohRos2CameraSource(_Live):
     ``image_topic`` / ``odom_topic`` are ROS 2 topic names; ``namespace`` the bridge's ``-n``
     option; ``connect`` / ``listen`` zenoh endpoints (the bridge's router: ``tcp/host:7447``);
     ``capacity`` frames are kept when the consumer is slower (the oldest go first);
-    ``timeout_s`` ends the stream after that long without a frame (None: only ``close()`` does).
+    ``timeout_s`` ends the stream after that long without a frame (None: only ``close()`` does);
+    frames whose long side exceeds ``max_side`` pixels are resized (16-bit encodings become
+    8-bit: :mod:`.imaging`).
     """
 
     def __init__(self, image_topic: str, image_type: str = "sensor_msgs/msg/Image", odom_topic: str | None = None,
                  namespace: str | None = None, connect: list[str] | None = None, listen: list[str] | None = None,
-                 capacity: int = 2, timeout_s: float | None = None, mode: str = "peer") -> None:
+                 capacity: int = 2, timeout_s: float | None = None, mode: str = "peer",
+                 max_side: int | None = DEFAULT_MAX_SIDE) -> None:
         if image_type not in ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"):
             raise ValueError(f"image_type {image_type!r} must be sensor_msgs/msg/Image or CompressedImage")
         super().__init__(connect, listen, capacity, timeout_s, mode)
         self.image_type = image_type
+        self.max_side = max_side
         self.keys = {"image": ros2_key(image_topic, namespace)}
         self._odom: tuple[float, float, float] | None = None  # t, v, w
         self._acc = [0.0, 0.0]
@@ -132,12 +137,19 @@ class ZenohRos2CameraSource(_Live):
             payload = sample.payload.to_bytes()
             if self.image_type == "sensor_msgs/msg/Image":
                 m = decode(payload, self.image_type)
-                item = {"stamp": m["stamp"], "image": m["image"].copy(), "encoding": m["encoding"]}
+                img = fit(m["image"], self.max_side)
+                item = {"stamp": m["stamp"], "image": img.copy() if img is m["image"] else img,
+                        "encoding": m["encoding"]}
             else:
                 m = decode(payload, self.image_type)
                 fmt = "png" if "png" in str(m.format).lower() else "jpeg"
                 item = {"stamp": m.header.stamp.sec + m.header.stamp.nanosec * 1e-9,
                         "compressed": bytes(m.data), "format": fmt}
+                if needs_resize(item["compressed"], self.max_side):  # decoded here, reduced
+                    bgr = decode_bounded(item["compressed"], self.max_side)
+                    if bgr is not None:
+                        del item["compressed"], item["format"]
+                        item.update(image=bgr[:, :, ::-1].copy(), encoding="rgb8")
         except CdrError as exc:
             self._error(str(exc))
             return
@@ -177,12 +189,14 @@ class ZenohImageSource(_Live):
     """Our msgpack ``image`` messages from any zenoh key (a non-ROS camera), with optional
     odometry: our ``odom`` messages on ``odom_key``, each the motion (vtrans, vrot, dt) of its own
     interval; the motions received between two images are summed into the later image's odometry.
+    Raw frames whose long side exceeds ``max_side`` pixels are resized.
     """
 
     def __init__(self, key: str, odom_key: str | None = None, connect: list[str] | None = None,
                  listen: list[str] | None = None, capacity: int = 2, timeout_s: float | None = None,
-                 mode: str = "peer") -> None:
+                 mode: str = "peer", max_side: int | None = DEFAULT_MAX_SIDE) -> None:
         super().__init__(connect, listen, capacity, timeout_s, mode)
+        self.max_side = max_side
         self.key = key
         self.odom_key = odom_key
         self._acc = [0.0, 0.0]
@@ -226,7 +240,8 @@ class ZenohImageSource(_Live):
             odom = ((d / dt, th / dt, dt) if dt > 0 else (0.0, 0.0, 0.0)) if self.odom_key else None
             data = msg.data
             if data.get("image") is not None:
-                yield SourceFrame(frame, msg.stamp, image=data["image"].copy(),
+                img = fit(data["image"], self.max_side)
+                yield SourceFrame(frame, msg.stamp, image=img.copy() if img is data["image"] else img,
                                   encoding=data.get("encoding") or "rgb8", odom=odom)
             else:
                 yield SourceFrame(frame, msg.stamp, compressed=bytes(data["compressed"]),

@@ -1,0 +1,124 @@
+"""Pixels at the sources: ROS image encodings to 8-bit frames, and images bounded in size.
+
+**ROS ``sensor_msgs/Image`` encodings** (:func:`ros_image`). 8-bit encodings pass through
+unchanged (a zero-copy view of the message's rows, row padding dropped). 16-bit encodings
+(``mono16``, ``16UC1``, ``rgb16``, ``bgr16``, ``rgba16``, ``bgra16``; ``is_bigendian`` honoured)
+become 8-bit by mapping **the frame's own range** [min, max] linearly onto 0..255 (colour
+channels together, so the colour balance is kept; alpha is dropped; a constant frame is black).
+Why not ``>> 8``: 16-bit cameras rarely fill 16 bits (10-14-bit sensors, thermal cameras whose
+scene spans a few hundred counts, depth in millimetres), and keeping the high byte would leave
+such frames almost black, with nothing for the front end to recognise. The stretch is the
+per-frame normalisation image viewers apply to 16-bit frames.
+
+**Size** (:func:`fit`, :func:`decode_bounded`). A valid but large image (an 8000 x 6000 photo)
+is resized at the source so that its long side is at most ``max_side`` pixels (INTER_AREA).
+A JPEG is decoded at a reduced scale (libjpeg's 1/2, 1/4, 1/8 DCT scaling, OpenCV's
+``IMREAD_REDUCED_COLOR_n``) so that the whole frame is never held in memory; other formats are
+decoded whole, then resized. Headers claiming more than
+:data:`~neoslam_stream.runtime.imageinfo.MAX_PIXELS` are not decoded here at all: the data goes
+on as it is and the front end refuses it with its cause.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ..runtime.imageinfo import image_dimensions, too_large, truncation
+
+#: default bound on a frame's long side, in pixels (sources' ``max_side`` parameter)
+DEFAULT_MAX_SIDE = 1920
+
+#: encoding -> (channels, bytes per channel, the 8-bit encoding of the frame it becomes)
+ROS_ENCODINGS: dict[str, tuple[int, int, str]] = {
+    "rgb8": (3, 1, "rgb8"), "bgr8": (3, 1, "bgr8"), "8uc3": (3, 1, "rgb8"),
+    "mono8": (1, 1, "mono8"), "8uc1": (1, 1, "mono8"),
+    "rgba8": (4, 1, "rgba8"), "bgra8": (4, 1, "bgra8"),
+    "mono16": (1, 2, "mono8"), "16uc1": (1, 2, "mono8"),
+    "rgb16": (3, 2, "rgb8"), "bgr16": (3, 2, "bgr8"),
+    "rgba16": (4, 2, "rgb8"), "bgra16": (4, 2, "bgr8"),
+}
+SUPPORTED = "rgb8, bgr8, mono8/8UC1, rgba8, bgra8, 8UC3, mono16/16UC1, rgb16, bgr16, rgba16, bgra16"
+
+_REDUCED = ((8, cv2.IMREAD_REDUCED_COLOR_8), (4, cv2.IMREAD_REDUCED_COLOR_4), (2, cv2.IMREAD_REDUCED_COLOR_2))
+
+
+class ImageEncodingError(ValueError):
+    """A ROS image that cannot be turned into a frame; the text says why."""
+
+
+def stretch_to_8bit(v: np.ndarray) -> np.ndarray:
+    """uint16 -> uint8: the frame's range [min, max] mapped linearly onto 0..255 (rounded)."""
+    lo, hi = int(v.min()), int(v.max())
+    if hi <= lo:
+        return np.zeros(v.shape, np.uint8)
+    return np.rint((v.astype(np.float64) - lo) * 255.0 / (hi - lo)).astype(np.uint8)
+
+
+def ros_image(data: Any, height: int, width: int, step: int, encoding: str,
+              is_bigendian: bool = False) -> tuple[np.ndarray, str]:
+    """(HxW or HxWxC uint8 frame, its encoding) of a ROS Image's fields. ``data`` is the pixel
+    buffer (bytes, memoryview or uint8 array, at least ``height * step`` bytes)."""
+    enc = str(encoding).lower()
+    spec = ROS_ENCODINGS.get(enc)
+    if spec is None:
+        raise ImageEncodingError(f"image encoding {encoding!r} is not supported ({SUPPORTED})")
+    channels, depth, out_enc = spec
+    row = width * channels * depth
+    if height <= 0 or width <= 0:
+        raise ImageEncodingError(f"image of {width}x{height} pixels is empty")
+    buf = np.frombuffer(data, dtype=np.uint8) if not isinstance(data, np.ndarray) else data.reshape(-1)
+    if step < row or buf.size < height * step:
+        raise ImageEncodingError(f"Image of {width}x{height} {encoding} with step {step} does not fit "
+                                 f"{buf.size} data bytes")
+    rows = buf[: height * step].reshape(height, step)[:, :row]
+    if depth == 1:
+        img = rows.reshape(height, width, channels) if channels > 1 else rows
+        return img, out_enc
+    dtype = ">u2" if is_bigendian else "<u2"
+    v = np.ascontiguousarray(rows).view(dtype).reshape(height, width, channels)
+    v = v[:, :, :3] if channels == 4 else v  # alpha carries no view
+    out = stretch_to_8bit(v)
+    return (out[:, :, 0] if channels == 1 else np.ascontiguousarray(out)), out_enc
+
+
+def fit(img: np.ndarray, max_side: int | None) -> np.ndarray:
+    """``img`` resized (INTER_AREA, aspect kept) so that its long side is at most ``max_side``."""
+    h, w = img.shape[:2]
+    if not max_side or max(h, w) <= max_side:
+        return img
+    s = max_side / max(h, w)
+    size = (max(1, round(w * s)), max(1, round(h * s)))
+    return cv2.resize(img, size, interpolation=cv2.INTER_AREA)
+
+
+def decode_bounded(raw: bytes, max_side: int | None) -> np.ndarray | None:
+    """The BGR frame of JPEG/PNG/... bytes with its long side at most ``max_side``, or None when
+    the bytes are empty, truncated, claim more than the decode limit, or do not decode (the
+    front end then refuses them with the cause)."""
+    if not raw or too_large(raw) is not None or truncation(raw) is not None:
+        return None
+    flag = cv2.IMREAD_COLOR
+    dims = image_dimensions(raw)
+    if max_side and dims is not None and raw[:2] == b"\xff\xd8":
+        # the largest DCT reduction that keeps the long side at or above the bound
+        for r, f in _REDUCED:
+            if max(dims) // r >= max_side:
+                flag = f
+                break
+    try:
+        img = cv2.imdecode(np.frombuffer(raw, np.uint8), flag)
+    except cv2.error:
+        return None
+    return None if img is None else fit(img, max_side)
+
+
+def needs_resize(raw: bytes, max_side: int | None) -> bool:
+    """Whether compressed bytes declare a frame whose long side is beyond ``max_side`` (and
+    within the decode limit): such a frame is decoded and resized at the source."""
+    if not max_side or too_large(raw) is not None:
+        return False
+    dims = image_dimensions(raw)
+    return dims is not None and max(dims) > max_side

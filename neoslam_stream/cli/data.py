@@ -129,7 +129,7 @@ def register(sub: argparse._SubParsersAction, bench_sub: argparse._SubParsersAct
                        description="Recompute evaluation.json and map.png of a run folder.")
     p.add_argument("run_dir")
     p.add_argument("--gt", help="ground truth TUM file (default: RUN_DIR/groundtruth.tum)")
-    p.add_argument("--radius", type=float, default=1.0, help="loop-closure correctness radius (m)")
+    p.add_argument("--radius", type=float, default=1.0, help="a closure is correct when its matched place is within this true distance (m; default 1.0)")
     p.set_defaults(func=cmd_evaluate)
     d = sub.add_parser("dataset", help="write data sets", description="Write data sets to disk.")
     dsub = d.add_subparsers(dest="dataset", metavar="KIND")

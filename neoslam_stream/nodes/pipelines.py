@@ -77,6 +77,25 @@ def build_ratslam(cfg: Any) -> PipelinePlan:
                         consumed_source_topics=["image", "odom"])
 
 
+def oracle_params(cfg: Any) -> dict[str, Any]:
+    """The oracle's parameters, ``radius_m: null`` resolved to the experience map's spacing in
+    metres (``exp_delta_pc_threshold`` pose cells of ``pc_cell_x_size``; see ``algorithms.oracle``)."""
+    params = cfg.oracle.model_dump()
+    if params["radius_m"] is None:
+        params["radius_m"] = cfg.pose_cells.exp_delta_pc_threshold * cfg.pose_cells.pc_cell_x_size
+    return params
+
+
+def build_oracle(cfg: Any) -> PipelinePlan:
+    """The back end with template ids from ground truth (``neoslam run --oracle-templates``): the
+    oracle node replaces A, B, C and D, so the map shows what the back end makes of a perfect
+    front end. Needs a source with ground truth."""
+    specs = [NodeSpec("oracle", "neoslam_stream.nodes.oracle:make_node", oracle_params(cfg))]
+    _backend_specs(cfg, specs)
+    return PipelinePlan(specs, final_topic="experience_map/pose", entry_stages=["oracle"],
+                        consumed_source_topics=["groundtruth", "odom"])
+
+
 RATSLAM_BRANCH_TOPICS = ("visual_template", "pose_cells/action", "experience_map/pose", "experience_map/map")
 
 
@@ -107,6 +126,7 @@ PIPELINES: dict[str, Any] = {
     "emulated": build_emulated,
     "neoslam": build_neoslam,
     "ratslam": build_ratslam,
+    "oracle": build_oracle,
     "compare": build_compare,
 }
 

@@ -10,9 +10,8 @@ Per frame, with the true pose (x, y, theta):
 
 * a template j is a candidate when its place p_j (the true position of the frame that created it)
   is within ``radius_m`` of the true position and its heading within ``heading_tolerance_deg`` of
-  the true heading (a camera facing the other way sees another view, and RatSLAM ties a template to
-  the pose cell (x', y', theta') where it was first seen: matching it facing elsewhere would inject
-  energy at the wrong heading);
+  the true heading (a camera facing the other way sees another view, so with the default 45 deg the
+  oracle is the best a forward camera's front end could do; 180 closes every revisit);
 * the nearest candidate is the frame's template; with no candidate a new template is created
   here (ids consecutive from 0);
 * a loop closure is a match to a template the robot had left before (a return to a place): every

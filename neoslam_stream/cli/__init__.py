@@ -26,7 +26,9 @@ def _overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
     if getattr(args, "oracle_templates", False):
         over["run"]["pipeline"] = "oracle"
     if getattr(args, "oracle_radius", None) is not None:
-        over["oracle"] = {"radius_m": args.oracle_radius}
+        over.setdefault("oracle", {})["radius_m"] = args.oracle_radius
+    if getattr(args, "oracle_heading_tolerance", None) is not None:
+        over.setdefault("oracle", {})["heading_tolerance_deg"] = args.oracle_heading_tolerance
     if getattr(args, "no_live", False):
         over["run"]["live"] = False
     if getattr(args, "checkpoint_every", None):
@@ -215,6 +217,9 @@ def build_parser() -> argparse.ArgumentParser:
     p_run.add_argument("--oracle-radius", type=float, metavar="M",
                        help="the oracle's template radius in metres (default: exp_delta_pc_threshold x "
                             "pc_cell_x_size, the experience spacing)")
+    p_run.add_argument("--oracle-heading-tolerance", type=float, metavar="DEG",
+                       help="the oracle matches a template only within this heading difference (default 45; "
+                            "180 ignores the heading: closures a forward camera cannot make)")
     p_run.set_defaults(func=cmd_run)
 
     p_mon = sub.add_parser("monitor", help="attach a live table to a running pipeline",

@@ -16,6 +16,7 @@ from pydantic import BaseModel, Field
 
 from .algorithms.features import FeatureConfig
 from .algorithms.neocortex import NeocortexConfig
+from .algorithms.oracle import OracleConfig
 from .algorithms.projector import ProjectorConfig
 from .algorithms.ratslam.experience_map import ExperienceMapConfig
 from .algorithms.ratslam.local_view import LocalViewConfig
@@ -40,6 +41,8 @@ class FullRunConfig(RunConfig):
     local_view: LocalViewConfig = Field(default_factory=lambda: LocalViewConfig(
         template_x_size=60, template_y_size=20, vt_shift_match=4, vt_step_match=1))
     visual_odometry: VisualOdometryConfig = Field(default_factory=VisualOdometryConfig)
+    #: the oracle front end of `neoslam run --oracle-templates` (template ids from ground truth)
+    oracle: OracleConfig = Field(default_factory=OracleConfig)
     #: wheel: odometry from the source; visual: RatSLAM's visual odometry stage
     odometry: str = Field("wheel", pattern="^(wheel|visual)$")
 

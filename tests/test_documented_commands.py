@@ -62,6 +62,11 @@ VALIDATE = {
     "--out bench/results/throughput_sparse",
     "neoslam bench throughput --rates \"\" --scaling 20000 --out bench/results/throughput",
     "neoslam bench throughput --scaling 20000",
+    "neoslam run -c paper",
+    "neoslam run --oracle-templates",
+    "neoslam run --oracle-templates --oracle-radius 0.25 --max-frames 1200",
+    "neoslam run --oracle-templates --oracle-heading-tolerance 180",
+    "neoslam compare --max-frames 300",
 }
 MAKE = {"make run", "make test", "make bench", "make", 'make run ARGS="--max-frames 300"'}
 ELSEWHERE = {

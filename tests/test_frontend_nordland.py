@@ -44,6 +44,7 @@ def test_efficientnet_front_end_recognises_places_across_seasons(efficientnet_ru
 
     run = efficientnet_runs[0]
     assert run["backbone"] == "efficientnet_lite0" and not run["backbone_is_random"]
+    assert run["neocortex"] == "neocortex (tie_break lowest)"  # the real C ran, not the pass-through
     assert run["places"] == 417 and run["frames"] == 834
     assert run["chance_precision"] < 0.01
     assert run["closures"] >= 50, run
@@ -69,3 +70,16 @@ def test_random_alexnet_is_flagged_and_carries_no_place_information():
     assert run["backbone"] == "random_alexnet" and run["backbone_is_random"] is True
     # random conv weights: closures are at chance level, far below the bar the real model clears
     assert run["precision"] is None or run["precision"] < 0.06
+
+
+def test_a_failing_temporal_memory_fails_the_front_end(monkeypatch):
+    """No silent stand-in for C: an exception in the Temporal Memory reaches the caller."""
+    from neoslam_stream.algorithms.neocortex import Neocortex
+
+    def broken(self, bits):
+        raise RuntimeError("C is broken")
+
+    monkeypatch.setattr(Neocortex, "compute", broken)
+    with pytest.raises(RuntimeError, match="C is broken"):
+        run_frontend("efficientnet_lite0", STEP, [{**SVC, "theta_sigma": None}], tolerance=TOLERANCE,
+                     limit=16, neocortex="tm", centre_window=WINDOW, min_std=MIN_STD)

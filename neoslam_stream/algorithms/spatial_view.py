@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 from numba import njit
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 from pyroaring import BitMap
 
 from ._config import make_config
@@ -54,6 +54,16 @@ class SpatialViewConfig(BaseModel):
     theta_sigma: int = Field(470, ge=0)
     exclude_recent_intervals: int = Field(3, ge=0)
     sdr_size: int = Field(65536, ge=1)
+
+    @field_validator("exclude_recent_intervals")
+    @classmethod
+    def _omega_excludes_the_current_interval(cls, v: int) -> int:
+        # omega = 0 makes the current interval, which already holds y_t, a candidate: every frame
+        # would match itself (a "loop closure" onto the template -1 it has not got yet at frame 0)
+        if v < 1:
+            raise ValueError(f"exclude_recent_intervals must be >= 1 (got {v}): the current interval "
+                             "already holds y_t, so with 0 every frame matches its own interval")
+        return v
 
 
 BLOCK = 128  # entries per posting block (512 B: few jumps per list, little slack)
@@ -245,7 +255,9 @@ class SpatialViewCells:
         return np.unique(a.astype(np.int64)).astype(np.int32)
 
     def compute(self, sdr: np.ndarray) -> dict[str, Any]:
-        """Process y_t; returns template id, loop-closure flag, best interval and score."""
+        """Process y_t; returns template id, loop-closure flag, best interval and score, and the
+        runner-up (``second_interval``, ``second_score``: the best candidate other than k*, -1 and
+        0 when there is none), from which a closure's margin best_score - second_score follows."""
         y = self._validate(sdr)
         y_bm = BitMap(y)
         new_interval = False
@@ -272,6 +284,7 @@ class SpatialViewCells:
             self._post_bits(y, k)
         limit = self.n_intervals - self.omega
         best, best_score = -1, 0
+        second, second_score = -1, 0  # the runner-up candidate (for the per-closure margin)
         if limit > 0:
             k_all = self.n_intervals
             if self._scores.shape[0] < k_all:
@@ -285,6 +298,11 @@ class SpatialViewCells:
                 _scores(self._pool, self._next, self._head, self._tail, self._fill, y, scores)
             best = int(np.argmax(scores[:limit]))  # first maximum = lowest index
             best_score = int(scores[best])
+            if limit > 1:
+                cand = scores[:limit]
+                cand[best] = -1  # scores are zeroed before the next frame: no need to restore
+                second = int(np.argmax(cand))
+                second_score = int(cand[second])
         loop = best >= 0 and best_score > self.theta_sigma
         if loop:
             template = self.interval_template[best]
@@ -298,7 +316,8 @@ class SpatialViewCells:
         self.current_template = template
         self.t += 1
         return {"id": template, "is_loop_closure": bool(loop), "best_interval": best if loop else -1,
-                "best_score": best_score, "relative_rad": 0.0, "interval": self.n_intervals - 1}
+                "best_score": best_score, "relative_rad": 0.0, "interval": self.n_intervals - 1,
+                "second_interval": second, "second_score": second_score}
 
     def warm_up(self) -> None:
         """Compile (or load from numba's cache) every kernel now, on a throw-away copy: disjoint

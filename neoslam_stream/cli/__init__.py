@@ -23,6 +23,12 @@ def _overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
         over["run"]["mode"] = args.mode
     if getattr(args, "pipeline", None):
         over["run"]["pipeline"] = args.pipeline
+    if getattr(args, "oracle_templates", False):
+        over["run"]["pipeline"] = "oracle"
+    if getattr(args, "oracle_radius", None) is not None:
+        over.setdefault("oracle", {})["radius_m"] = args.oracle_radius
+    if getattr(args, "oracle_heading_tolerance", None) is not None:
+        over.setdefault("oracle", {})["heading_tolerance_deg"] = args.oracle_heading_tolerance
     if getattr(args, "no_live", False):
         over["run"]["live"] = False
     if getattr(args, "checkpoint_every", None):
@@ -84,6 +90,10 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
 def cmd_run(args: argparse.Namespace) -> int:
     from ..launch import RunError, run
 
+    if getattr(args, "oracle_templates", False) and getattr(args, "pipeline", None) not in (None, "oracle"):
+        print(f"error: --oracle-templates replaces the front end of the neoslam pipeline; it cannot run "
+              f"with --pipeline {args.pipeline}", file=sys.stderr)
+        return 2
     cfg = _load(args)
     try:
         result = run(cfg, args.out, getattr(args, "resume", None), getattr(args, "map", None))
@@ -92,6 +102,10 @@ def cmd_run(args: argparse.Namespace) -> int:
         return 1
     print_summary(result.report)
     run_dir = result.run_dir
+    if cfg.run.pipeline == "oracle" and not (run_dir / "groundtruth.tum").exists():
+        print("error: --oracle-templates needs a source with ground truth (this one published none, so "
+              "no template was made)", file=sys.stderr)
+        return 1
     if (run_dir / "groundtruth.tum").exists() and (run_dir / "trajectory.tum").exists():
         from ..evaluation import evaluate_run
 
@@ -103,13 +117,15 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def print_evaluation(ev: dict[str, Any]) -> None:
+    from ..evaluation import closures_line
+
     t, o = ev.get("trajectory_ape", {}), ev.get("odometry_ape", {})
     m = ev.get("map_paper", {})
-    lc = ev.get("loop_closures", {})
     print(f"trajectory APE mean {t.get('mean_m', float('nan')):.3f} m (max {t.get('max_m', float('nan')):.3f}); "
           f"odometry APE mean {o.get('mean_m', float('nan')):.3f} m; "
-          f"map nodes {ev.get('map_nodes', 0)}, paper metric mean {m.get('mean_m', float('nan')):.3f} m; "
-          f"loop closures {lc.get('closures')}, precision {lc.get('precision')}")
+          f"map nodes {ev.get('map_nodes', 0)}, paper metric mean {m.get('mean_m', float('nan')):.3f} m")
+    if "loop_closures" in ev:
+        print(closures_line(ev["loop_closures"]))
     print("evaluation.json and map.png written")
 
 
@@ -214,7 +230,16 @@ def build_parser() -> argparse.ArgumentParser:
     p_run.add_argument("--resume", metavar="RUN_DIR", help="resume from the last checkpoint of RUN_DIR")
     p_run.add_argument("--map", metavar="MAP_FILE",
                        help="start from a map exported by `neoslam map export` (long-term deployment)")
-    p_run.add_argument("--pipeline", help="pipeline name (neoslam, ratslam, emulated)")
+    p_run.add_argument("--pipeline", help="pipeline name (neoslam, ratslam, oracle, emulated)")
+    p_run.add_argument("--oracle-templates", action="store_true",
+                       help="template ids from ground truth instead of the front end (A-D): the back end's "
+                            "best map (the `oracle` pipeline; docs/evaluation.md)")
+    p_run.add_argument("--oracle-radius", type=float, metavar="M",
+                       help="the oracle's template radius in metres (default: exp_delta_pc_threshold x "
+                            "pc_cell_x_size, the experience spacing)")
+    p_run.add_argument("--oracle-heading-tolerance", type=float, metavar="DEG",
+                       help="the oracle matches a template only within this heading difference (default 45; "
+                            "180 ignores the heading: closures a forward camera cannot make)")
     p_run.set_defaults(func=cmd_run)
 
     p_mon = sub.add_parser("monitor", help="attach a live table to a running pipeline",

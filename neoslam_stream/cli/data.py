@@ -129,7 +129,7 @@ def register(sub: argparse._SubParsersAction, bench_sub: argparse._SubParsersAct
                        description="Recompute evaluation.json and map.png of a run folder.")
     p.add_argument("run_dir")
     p.add_argument("--gt", help="ground truth TUM file (default: RUN_DIR/groundtruth.tum)")
-    p.add_argument("--radius", type=float, default=1.0, help="loop-closure correctness radius (m)")
+    p.add_argument("--radius", type=float, default=1.0, help="a closure is correct when its matched place is within this true distance (m; default 1.0)")
     p.set_defaults(func=cmd_evaluate)
     d = sub.add_parser("dataset", help="write data sets", description="Write data sets to disk.")
     dsub = d.add_subparsers(dest="dataset", metavar="KIND")
@@ -146,16 +146,21 @@ def register(sub: argparse._SubParsersAction, bench_sub: argparse._SubParsersAct
     s.set_defaults(func=cmd_dataset_synthetic)
     from . import add_run_options
 
-    c = sub.add_parser("compare", help="NeoSLAM and RatSLAM on the same stream, side by side",
-                       description="Run NeoSLAM and the RatSLAM baseline (local-view cells) in one run, the image "
-                                   "topic fanned out to both; print a table and write compare.json and "
-                                   "compare.png (RatSLAM's files in OUT/ratslam/).")
+    c = sub.add_parser("compare", help="NeoSLAM (default and paper profile) and RatSLAM on the same stream",
+                       description="Run NeoSLAM with the config, NeoSLAM with the paper's profile (configs/paper.yaml; "
+                                   "stages with the same parameters are shared) and the RatSLAM baseline (local-view "
+                                   "cells) in one run, the image topic fanned out to all; print one table and write "
+                                   "compare.json and compare.png (the paper profile's files in OUT/paper/, "
+                                   "RatSLAM's in OUT/ratslam/).")
     add_run_options(c)
+    c.add_argument("--radius", type=float, default=1.0,
+                   help="a closure is correct when its matched place is within this true distance (m; default 1.0)")
     c.set_defaults(func=cmd_compare)
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
-    """NeoSLAM and RatSLAM on the same stream in one run, then a side-by-side table and one plot."""
+    """NeoSLAM (the config and the paper's profile) and RatSLAM on the same stream in one run, then
+    one table and one figure."""
     from ..evaluation.compare import compare_runs
     from ..launch import RunError, run
     from . import _load, print_summary
@@ -169,25 +174,26 @@ def cmd_compare(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 1
     print_summary(res.report)
-    table = compare_runs(out, res.report)
-    _print_compare(table)
+    table = compare_runs(out, res.report, radius=args.radius)
+    _print_compare(table, args.radius)
     print(f"compare.json and compare.png in {out}")
     return 0
 
 
-def _print_compare(table: dict) -> None:
+def _print_compare(table: dict, radius: float = 1.0) -> None:
     from rich.console import Console
     from rich.table import Table
 
     from ..evaluation.compare import COLUMNS
 
-    t = Table(title="NeoSLAM vs RatSLAM (same stream)")
+    t = Table(title=f"NeoSLAM (default, paper) vs RatSLAM, same stream; closures correct within {radius:g} m")
     t.add_column("")
     for _key, short in COLUMNS:
         t.add_column(short, justify="right")
     for name, row in table.items():
-        t.add_row(name, *[("" if row.get(c) is None else f"{row[c]:.3f}" if isinstance(row.get(c), float)
-                           else str(row[c])) for c, _short in COLUMNS])
+        label = row.get("label", name) + (" = default" if row.get("same_as_default") else "")
+        t.add_row(label, *[("" if row.get(c) is None else f"{row[c]:.3f}" if isinstance(row.get(c), float)
+                            else str(row[c])) for c, _short in COLUMNS])
     con = Console()
     con.print(t)
     lat = Table(title="per-stage latency (tau p50, ms)")
@@ -195,5 +201,5 @@ def _print_compare(table: dict) -> None:
     lat.add_column("stages")
     for name, row in table.items():
         taus = row.get("stage_tau_p50_ms") or {}
-        lat.add_row(name, ", ".join(f"{s}: {v:.1f}" for s, v in taus.items() if v is not None))
+        lat.add_row(row.get("label", name), ", ".join(f"{s}: {v:.1f}" for s, v in taus.items() if v is not None))
     con.print(lat)

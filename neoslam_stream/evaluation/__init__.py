@@ -6,7 +6,8 @@
 * APE: per-frame trajectory error after a least-squares SE(2) alignment (Umeyama, no scale) of the
   estimate onto the ground truth; mean, RMSE and max. Our own implementation (evo is GPL-3.0).
 * Loop closures: precision/recall when ground truth is known (a closure is correct when the
-  matched template was created within ``radius`` metres of the current true position).
+  place it matched, the true position of its matched frame in ``closures.csv``, or else of the
+  frame that created its template, is within ``radius`` metres of the current true position).
 * ``map.png``: experience map, ground truth and odometry in one plot, loop closures marked.
 
 ``evaluate_run(run_dir)`` reads a run folder (``trajectory.tum``, ``map.json``, ``templates.csv``,
@@ -24,7 +25,8 @@ import numpy as np
 
 from ..tum import read_tum, write_tum
 
-__all__ = ["ape", "associate", "evaluate_run", "loop_closure_quality", "paper_metric", "read_tum",
+__all__ = ["ape", "associate", "closures_line", "evaluate_run", "loop_closure_quality", "paper_metric",
+           "read_closures", "read_tum",
            "umeyama_se2", "write_tum"]
 
 
@@ -62,12 +64,25 @@ def paper_metric(est_xy: np.ndarray, ref_xy: np.ndarray) -> dict[str, float]:
     return {"mean_m": float(err.mean()), "max_m": float(err.max())}
 
 
+def read_closures(path: str | Path) -> dict[int, int]:
+    """closures.csv (written by the recorder): closure frame -> matched frame."""
+    out: dict[int, int] = {}
+    lines = Path(path).read_text().splitlines()
+    for line in lines[1:]:
+        parts = line.split(",")
+        if len(parts) >= 4 and parts[0].isdigit():
+            out[int(parts[0])] = int(parts[3])
+    return out
+
+
 def loop_closure_quality(templates_csv: str | Path, gt: np.ndarray, radius: float = 1.0,
-                         min_gap_s: float = 30.0) -> dict[str, Any]:
+                         min_gap_s: float = 30.0, closures_csv: str | Path | None = None) -> dict[str, Any]:
     """Precision and recall of the loop closures in ``templates.csv`` against ground truth.
 
-    A template's place is the true position at the first frame that produced it. A closure (a frame
-    with ``is_loop_closure``) is correct when its template's place is within ``radius`` metres of the
+    A closure's place is the true position of its matched frame as ``closures_csv`` gives it (the
+    frame that opened D's matched interval, or created the matched template), or, without that
+    file or row, the true position at the first frame that produced its template. A closure (a
+    frame with ``is_loop_closure``) is correct when its place is within ``radius`` metres of the
     frame's true position. A frame is a revisit when the robot was within ``radius`` of its true
     position more than ``min_gap_s`` seconds earlier; recall = revisit frames with a correct closure
     / revisit frames. Frames without a ground-truth sample within 1 s are left out.
@@ -79,11 +94,22 @@ def loop_closure_quality(templates_csv: str | Path, gt: np.ndarray, radius: floa
         return {"closures": 0, "correct": 0, "precision": None, "recall": None, "revisit_frames": 0,
                 "radius_m": radius}
     ie, gi = associate(rows[:, 1], gt[:, 0], max_dt=1.0)
+    frames = rows[ie, 0].astype(int)
     stamps, ids, loops = rows[ie, 1], rows[ie, 2].astype(int), rows[ie, 3].astype(bool)
     pos = gt[gi, 1:3]
     _, first = np.unique(ids, return_index=True)
     place = dict(zip(ids[first].tolist(), pos[first], strict=True))
     tpl_pos = np.array([place[t] for t in ids.tolist()]).reshape(-1, 2)
+    matched_by = "template"
+    if closures_csv is not None and Path(closures_csv).exists():
+        # the matched frame's true position where the recorder knew it (and it has ground truth)
+        matched = read_closures(closures_csv)
+        at = dict(zip(frames.tolist(), pos, strict=True))
+        for i in np.flatnonzero(loops):
+            m = matched.get(int(frames[i]))
+            if m is not None and m in at:
+                tpl_pos[i] = at[m]
+        matched_by = "closures.csv"
     correct = loops & (np.linalg.norm(tpl_pos - pos, axis=1) <= radius)
     earliest = np.array([stamps[nb].min() for nb in cKDTree(pos).query_ball_point(pos, radius)])
     revisit = earliest < stamps - min_gap_s
@@ -91,7 +117,19 @@ def loop_closure_quality(templates_csv: str | Path, gt: np.ndarray, radius: floa
     return {"closures": n_loops, "correct": int(correct.sum()),
             "precision": float(correct.sum() / n_loops) if n_loops else None,
             "recall": float((correct & revisit).sum() / n_rev) if n_rev else None,
-            "revisit_frames": n_rev, "radius_m": radius, "min_gap_s": min_gap_s}
+            "revisit_frames": n_rev, "radius_m": radius, "min_gap_s": min_gap_s, "matched_by": matched_by}
+
+
+def closures_line(lc: dict[str, Any]) -> str:
+    """The closures' precision and recall at the stated radius, as ``neoslam evaluate`` prints them:
+    ``closures: precision 0.85, recall 0.40 at 1.0 m (41 of 48 correct)``."""
+    def f(v: float | None) -> str:
+        return "n/a" if v is None else f"{v:.2f}"
+
+    r = f"{lc.get('radius_m', float('nan')):g}"
+    r = r if "." in r or "e" in r or "n" in r else r + ".0"  # 1.0 m, 0.25 m
+    return (f"closures: precision {f(lc.get('precision'))}, recall {f(lc.get('recall'))} at "
+            f"{r} m ({lc.get('correct', 0)} of {lc.get('closures', 0)} correct)")
 
 
 def evaluate_run(run_dir: str | Path, gt_path: str | Path | None = None, radius: float = 1.0,
@@ -126,7 +164,8 @@ def evaluate_run(run_dir: str | Path, gt_path: str | Path | None = None, radius:
         result["odometry_ape"] = ape(odo[oe, 1:3], gt[og, 1:3])
         result["odometry_paper"] = paper_metric(odo[oe, 1:3], gt[og, 1:3])
     if (run_dir / "templates.csv").exists():
-        result["loop_closures"] = loop_closure_quality(run_dir / "templates.csv", gt, radius)
+        result["loop_closures"] = loop_closure_quality(run_dir / "templates.csv", gt, radius,
+                                                       closures_csv=run_dir / "closures.csv")
     (run_dir / "evaluation.json").write_text(json.dumps(result, indent=2))
     if plot:
         from .plots import plot_map, synthetic_walls

@@ -73,33 +73,58 @@ def plot_map(run_dir: Path, gt: np.ndarray, traj: np.ndarray, mp: dict, result: 
     plt.close(fig)
 
 
-def plot_compare(dirs: dict[str, Path], out: Path) -> None:
-    """``compare.png``: ground truth and each pipeline's trajectory (``dirs``: name -> run folder),
-    each aligned onto the ground truth by SE(2) Umeyama."""
+def plot_compare(dirs: dict[str, Path], out: Path, ape: dict[str, float | None] | None = None) -> None:
+    """``compare.png``: one panel per pipeline (``dirs``: label -> run folder) with its experience
+    map (nodes and links) and its trajectory, the ground truth and the odometry, each aligned onto
+    the ground truth by SE(2) Umeyama (the map with its trajectory's transform); the world's walls
+    when the run's source was synthetic; ``ape``: label -> APE mean (m) for the panel titles."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7, 6))
     first = next(iter(dirs.values()))
     gt = read_tum(first / "groundtruth.tum") if (first / "groundtruth.tum").exists() else None
-    if gt is not None:
-        ax.plot(gt[:, 1], gt[:, 2], "k-", lw=1.5, label="ground truth")
+    odo = read_tum(first / "odometry.tum") if (first / "odometry.tum").exists() else None
+    walls = synthetic_walls(first)
+    fig, axes = plt.subplots(1, len(dirs), figsize=(5.5 * len(dirs), 5.2), sharex=True, sharey=True,
+                             squeeze=False)
     colours = iter(("b", "m", "g", "c", "y"))
-    for name, d in dirs.items():
+    for ax, (name, d) in zip(axes[0], dirs.items(), strict=True):
         colour = next(colours, "k")
-        f = d / "trajectory.tum"
-        if not f.exists():
-            continue
-        tr = read_tum(f)
-        xy = tr[:, 1:3]
+        if walls is not None:
+            from matplotlib.collections import LineCollection
+
+            ax.add_collection(LineCollection(np.asarray(walls), colors="0.75", linewidths=1.5, zorder=0))
         if gt is not None:
-            ie, ig = associate(tr[:, 0], gt[:, 0])
-            R, t = umeyama_se2(xy[ie], gt[ig, 1:3])
-            xy = xy @ R.T + t
-        ax.plot(xy[:, 0], xy[:, 1], f"{colour}-", lw=0.8, label=name)
-    ax.set_aspect("equal")
-    ax.legend()
+            ax.plot(gt[:, 1], gt[:, 2], "k-", lw=1.2, label="ground truth")
+            if odo is not None:
+                oe, og = associate(odo[:, 0], gt[:, 0])
+                Ro, to = umeyama_se2(odo[oe, 1:3], gt[og, 1:3])
+                o = odo[:, 1:3] @ Ro.T + to
+                ax.plot(o[:, 0], o[:, 1], "r-", lw=0.7, alpha=0.6, label="odometry")
+        f = d / "trajectory.tum"
+        if f.exists():
+            tr = read_tum(f)
+            R, t = np.eye(2), np.zeros(2)
+            if gt is not None:
+                ie, ig = associate(tr[:, 0], gt[:, 0])
+                R, t = umeyama_se2(tr[ie, 1:3], gt[ig, 1:3])
+            xy = tr[:, 1:3] @ R.T + t
+            ax.plot(xy[:, 0], xy[:, 1], f"{colour}-", lw=0.5, alpha=0.5, label=f"{name} trajectory")
+            mp_file = d / "map.json"
+            mp = json.loads(mp_file.read_text()) if mp_file.exists() else {}
+            nodes = {n["id"]: np.array([n["x"], n["y"]]) @ R.T + t for n in mp.get("nodes", [])}
+            for lk in mp.get("links", []):
+                a, b = nodes.get(lk["from"]), nodes.get(lk["to"])
+                if a is not None and b is not None:
+                    ax.plot([a[0], b[0]], [a[1], b[1]], f"{colour}-", lw=0.6)
+            if nodes:
+                pts = np.array(list(nodes.values()))
+                ax.plot(pts[:, 0], pts[:, 1], f"{colour}.", ms=3, label=f"{name} map")
+        a = (ape or {}).get(name)
+        ax.set_title(name if a is None else f"{name}: APE mean {a:.2f} m", fontsize=10)
+        ax.set_aspect("equal")
+        ax.legend(loc="best", fontsize=7)
     fig.savefig(out, dpi=110, bbox_inches="tight")
     plt.close(fig)

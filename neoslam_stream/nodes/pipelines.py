@@ -83,28 +83,99 @@ def build_ratslam(cfg: Any) -> PipelinePlan:
                         consumed_source_topics=_source_topics(cfg))
 
 
+def oracle_params(cfg: Any) -> dict[str, Any]:
+    """The oracle's parameters, ``radius_m: null`` resolved to the experience map's spacing in
+    metres (``exp_delta_pc_threshold`` pose cells of ``pc_cell_x_size``; see ``algorithms.oracle``)."""
+    params = cfg.oracle.model_dump()
+    if params["radius_m"] is None:
+        params["radius_m"] = cfg.pose_cells.exp_delta_pc_threshold * cfg.pose_cells.pc_cell_x_size
+    return params
+
+
+def build_oracle(cfg: Any) -> PipelinePlan:
+    """The back end with template ids from ground truth (``neoslam run --oracle-templates``): the
+    oracle node replaces A, B, C and D, so the map shows what the back end makes of a perfect
+    front end. Needs a source with ground truth."""
+    specs = [NodeSpec("oracle", "neoslam_stream.nodes.oracle:make_node", oracle_params(cfg))]
+    _backend_specs(cfg, specs)
+    return PipelinePlan(specs, final_topic="experience_map/pose", entry_stages=["oracle"],
+                        consumed_source_topics=["groundtruth", "odom"])
+
+
 RATSLAM_BRANCH_TOPICS = ("visual_template", "pose_cells/action", "experience_map/pose", "experience_map/map")
+#: the topics each NeoSLAM node publishes, in chain order (a branch's own stages publish them under
+#: its prefix)
+NEOSLAM_OUTPUTS = {"A": ("visual_features",), "B": ("bin_features",), "C": ("sdr",), "D": ("visual_template",),
+                   "pose_cells": ("pose_cells/action",),
+                   "experience_map": ("experience_map/pose", "experience_map/map")}
+#: the paper-profile branch of ``neoslam compare``: its config, node prefix, topic prefix, sub-folder
+PAPER_PROFILE, PAPER_PREFIX, PAPER_DIR = "paper", "pp_", "paper"
+
+
+def _branch(specs: list[NodeSpec], prefix: str, remap: dict[str, str], subdir: str) -> list[NodeSpec]:
+    """``specs`` renamed ``<prefix><name>``, their topics remapped, their files in ``subdir``; a
+    branch reuses the run's odometry (no visual odometry of its own)."""
+    out = []
+    for spec in specs:
+        if spec.factory.endswith("make_visual_odometry_node"):  # one odometry for every branch
+            continue
+        spec.name = f"{prefix}{spec.name}"
+        spec.remap = dict(remap)
+        spec.output_subdir = subdir
+        if spec.host:
+            spec.host = f"{prefix}{spec.host}"
+            spec.capacity = {remap.get(t, t): c for t, c in spec.capacity.items()}
+        out.append(spec)
+    return out
+
+
+def paper_profile_config(cfg: Any) -> Any:
+    """``cfg`` with every algorithm section of the paper's profile (``configs/paper.yaml``): the
+    run, bus and source sections, and the odometry choice, stay ``cfg``'s."""
+    from ..config import load_config
+    from ..runtime.config import RunConfig
+
+    paper = load_config(PAPER_PROFILE)
+    algo = set(type(cfg).model_fields) - set(RunConfig.model_fields) - {"odometry"}
+    return cfg.model_copy(update={k: getattr(paper, k) for k in algo})
+
+
+def paper_branch(cfg: Any, plan: PipelinePlan) -> list[NodeSpec]:
+    """The NeoSLAM nodes of the paper's profile beside ``plan``'s (the run's config): the stages
+    whose parameters, and whose upstream stages' parameters, are the same are shared (A's CNN runs
+    once when only D differs); the first stage that differs and all after it run again as
+    ``pp_<stage>``, publishing under ``paper/...``, with their own recorder writing into
+    ``RUN_DIR/paper/``. Empty when the two profiles are the same."""
+    pp = build_neoslam(paper_profile_config(cfg))
+    mine = {s.name: s for s in plan.stages}
+    own: list[NodeSpec] = []
+    shared = True
+    for spec in pp.stages:
+        if spec.factory.endswith("make_visual_odometry_node"):
+            continue
+        if shared and spec.name in NEOSLAM_OUTPUTS and spec.name in mine and mine[spec.name].params == spec.params:
+            continue  # the same stage on the same input: its output serves both branches
+        shared = False
+        own.append(spec)
+    if all(s.name == "recorder" for s in own):
+        return []
+    remap = {t: f"{PAPER_DIR}/{t}" for s in own for t in NEOSLAM_OUTPUTS.get(s.name, ())}
+    return _branch(own, PAPER_PREFIX, remap, PAPER_DIR)
 
 
 def build_compare(cfg: Any) -> PipelinePlan:
-    """NeoSLAM and the RatSLAM baseline in one run: the image (and odometry) topics fan out to both.
+    """NeoSLAM with the run's config, NeoSLAM with the paper's profile and the RatSLAM baseline in
+    one run: the image (and odometry) topics fan out to every branch.
 
-    The RatSLAM branch's nodes are prefixed ``rs_``, publish under ``ratslam/...`` and write their
-    files into ``<run folder>/ratslam/``.
+    The paper branch's own nodes are prefixed ``pp_`` (see :func:`paper_branch`); the RatSLAM
+    branch's nodes are prefixed ``rs_``, publish under ``ratslam/...`` and write their files into
+    ``<run folder>/ratslam/``.
     """
     plan = build_neoslam(cfg)
     rs = build_ratslam(cfg)
-    remap = {t: f"ratslam/{t}" for t in RATSLAM_BRANCH_TOPICS}
-    for spec in rs.stages:
-        spec.name = f"rs_{spec.name}"
-        spec.remap = dict(remap)
-        spec.output_subdir = "ratslam"
-        if spec.host:
-            spec.host = f"rs_{spec.host}"
-            spec.capacity = {remap.get(t, t): c for t, c in spec.capacity.items()}
-        if spec.factory.endswith("make_visual_odometry_node"):  # one odometry for both branches
-            continue
-        plan.stages.append(spec)
+    paper = paper_branch(cfg, plan)
+    plan.stages += paper
+    plan.stages += _branch(rs.stages, "rs_", {t: f"ratslam/{t}" for t in RATSLAM_BRANCH_TOPICS}, "ratslam")
     return plan
 
 
@@ -113,6 +184,7 @@ PIPELINES: dict[str, Any] = {
     "emulated": build_emulated,
     "neoslam": build_neoslam,
     "ratslam": build_ratslam,
+    "oracle": build_oracle,
     "compare": build_compare,
 }
 

@@ -1,8 +1,9 @@
 """The recorder node: writes a run's outputs from the topics, so no algorithm node writes files.
 
-It subscribes to ``visual_template`` (templates.csv: frame -> template id, loop closures),
-``experience_map/pose`` (trajectory.tum: the experience-map pose per frame) and
-``experience_map/map`` (map.json: nodes and links, published once at the end of the run). It is an
+It subscribes to ``visual_template`` (templates.csv: frame -> template id, loop closures; and
+closures.csv, one row per loop closure), ``experience_map/pose`` (trajectory.tum: the
+experience-map pose per frame), ``experience_map/map`` (map.json: nodes and links, published once
+at the end of the run) and ``groundtruth`` (the true distance of each closure). It is an
 observer: hosted in the experience map's worker, it does not keep those topics off the bus. Its
 rows are its state, so checkpoints, ``--resume`` and crash restarts give the same files as an
 uninterrupted run.
@@ -18,6 +19,13 @@ Writing, so that a crash or a full disk loses as little as possible and never te
   torn by the crash), adds those of its restored state that had not reached the files, and skips
   rows of frames already written (an upstream stage replaying them), so no row is lost or doubled.
   A new run, or the in-process API, starts the files afresh.
+* ``closures.csv`` (frame, stamp, template id, matched frame, true distance, score, runner-up's
+  score, margin; see :data:`CLOSURES_HEADER`) grows the same way. The matched frame is the frame
+  that opened the matched interval (D reports its intervals) or, for a front end without intervals,
+  the frame that created the matched template. A closure row waits for the ground truth of its
+  frame (which the source publishes before the image reaches the front end); it is written with an
+  empty distance once the ground-truth stream has passed its frame without it, or after
+  ``GT_WAIT_ROWS`` closures when no ground truth came at all (a source without it), or at the end.
 * ``map.json`` is written at the end to a temporary file, fsynced and renamed over the old one.
 * An ``OSError`` (disk full) is logged once per file with the path (``disk full writing
   RUN/map.json: ...``), counted (``counters["write_errors"]``); the rows not written wait and are
@@ -38,14 +46,23 @@ import numpy as np
 from ..runtime.files import AppendFile, complete_lines, describe_write_error, write_atomic
 from ..runtime.messages import Message
 from ..runtime.node import Node, Output
-from .topics import EXPERIENCE_MAP, EXPERIENCE_POSE, VISUAL_TEMPLATE
+from .topics import EXPERIENCE_MAP, EXPERIENCE_POSE, GROUNDTRUTH, VISUAL_TEMPLATE
 
 log = logging.getLogger("neoslam.recorder")
 
 TEMPLATES_HEADER = "frame,stamp,template_id,is_loop_closure,best_interval,best_score\n"
+#: one row per loop closure: the matched frame opened the matched interval (or created the matched
+#: template); true_distance_m between the true positions of the two frames (empty without ground
+#: truth); score and second_score are the front end's best and runner-up scores (D: overlaps;
+#: the oracle: distances in metres; empty where the front end has no runner-up) and margin their
+#: difference, how much the winner beat the runner-up (|score - second_score|: the best score is
+#: the front end's best by definition, whichever way its scores run)
+CLOSURES_HEADER = "frame,stamp,template_id,matched_frame,true_distance_m,score,second_score,margin\n"
 #: the recorder's journal of the rows it appended (see the module docstring)
 JOURNAL = ".recorder.journal"
-TEMPLATES, TRAJECTORY = "templates.csv", "trajectory.tum"
+TEMPLATES, TRAJECTORY, CLOSURES = "templates.csv", "trajectory.tum", "closures.csv"
+#: closure rows that wait for ground truth before they are written without it when none has come
+GT_WAIT_ROWS = 64
 
 
 def template_line(r: tuple) -> str:
@@ -61,6 +78,24 @@ def trajectory_line(r: tuple) -> str:
     return f"{t:.6f} {x:.6f} {y:.6f} 0 0 0 {np.sin(yaw / 2):.9f} {np.cos(yaw / 2):.9f}\n"
 
 
+def _num(v: Any) -> str:
+    """A score as the front end gave it: an int as an int, a float with 6 significant digits."""
+    if v is None:
+        return ""
+    if isinstance(v, (int, np.integer)) or (isinstance(v, float) and v.is_integer() and abs(v) < 2**53):
+        return str(int(v))
+    return f"{float(v):.6g}"
+
+
+def closure_line(r: tuple) -> str:
+    """One row of closures.csv for a recorder closure row (frame, stamp, template id, matched frame,
+    true distance or None, score, runner-up's score or None)."""
+    frame, stamp, tid, matched, dist, score, second = r
+    margin = None if second is None or score is None else abs(float(score) - float(second))
+    return (f"{frame},{stamp:.6f},{tid},{matched},{'' if dist is None else f'{dist:.3f}'},"
+            f"{_num(score)},{_num(second)},{'' if margin is None else _num(margin)}\n")
+
+
 def write_templates_csv(path: str | Path, rows: list) -> None:
     """templates.csv with ``rows`` (written whole and atomically)."""
     write_atomic(path, (TEMPLATES_HEADER + "".join(template_line(r) for r in rows)).encode())
@@ -69,9 +104,9 @@ def write_templates_csv(path: str | Path, rows: list) -> None:
 class RecorderNode(Node):
     """Writes templates.csv and trajectory.tum into ``run_dir`` row by row, map.json at the end."""
 
-    inputs = (VISUAL_TEMPLATE, EXPERIENCE_POSE, EXPERIENCE_MAP)
+    inputs = (VISUAL_TEMPLATE, EXPERIENCE_POSE, EXPERIENCE_MAP, GROUNDTRUTH)
     outputs = ()
-    unordered_inputs = (EXPERIENCE_MAP,)
+    unordered_inputs = (EXPERIENCE_MAP, GROUNDTRUTH)
     observer = True
     #: seconds between two attempts to write rows that could not be written (disk full)
     RETRY_S = 1.0
@@ -81,13 +116,26 @@ class RecorderNode(Node):
         self.templates: list[tuple[int, float, int, int, int, Any]] = []
         self.trajectory: list[tuple[int, float, float, float, float, int]] = []
         self.map_export: dict[str, Any] | None = None
-        #: the open output files by kind ("t": templates.csv, "p": trajectory.tum), the journal
+        #: closures.csv rows written (frame, stamp, template, matched frame, distance, score, second)
+        self.closures: list[tuple] = []
+        #: closure rows waiting for the ground truth of their frame
+        self.closures_waiting: list[tuple] = []
+        #: the frame that created each template / opened each of D's intervals
+        self.template_first: dict[int, int] = {}
+        self.interval_first: dict[int, int] = {}
+        #: true (x, y) of those first frames, and of frames whose template has not come yet
+        self.places: dict[int, tuple[float, float]] = {}
+        self.gt: dict[int, tuple[float, float]] = {}
+        self.gt_last_frame = -1
+        self.last_template_frame = -1
+        self._first_frames: set[int] = set()
+        #: the open output files by kind ("t": templates.csv, "p": trajectory.tum, "c": closures.csv)
         self._files: dict[str, AppendFile] | None = None
         self._journal: AppendFile | None = None
         #: rows to append, in order: (kind, frame, line)
         self._backlog: deque[tuple[str, int, bytes]] = deque()
         #: after a restart, the frames each file held already (rows for them are not written again)
-        self._written: dict[str, set[int]] = {"t": set(), "p": set()}
+        self._written: dict[str, set[int]] = {"t": set(), "p": set(), "c": set()}
         self._retry_at = 0.0
         self._logged: set[str] = set()
 
@@ -97,6 +145,9 @@ class RecorderNode(Node):
             row = (msg.frame, msg.stamp, int(d["id"]), int(bool(d.get("is_loop_closure", False))),
                    int(d.get("best_interval", -1)), d.get("best_score", -1))
             self._add("t", row, self.templates, template_line)
+            self._closure(msg)
+        elif topic == GROUNDTRUTH:
+            self._groundtruth(msg.frame, d["pose"])
         elif topic == EXPERIENCE_POSE:
             x, y, th = (float(v) for v in d["pose"])
             self._add("p", (msg.frame, msg.stamp, x, y, th, int(d.get("exp_id", -1))), self.trajectory,
@@ -104,6 +155,61 @@ class RecorderNode(Node):
         else:
             self.map_export = d.get("export")
         return []
+
+    # ------------------------------------------------------------------ closures.csv
+    def _closure(self, msg: Message) -> None:
+        """Note the first frame of the template (and interval), queue a closure row, write those
+        whose ground truth is settled."""
+        d, f = msg.data, msg.frame
+        tid = int(d["id"])
+        interval = d.get("interval")
+        firsts = []
+        if tid not in self.template_first:
+            self.template_first[tid] = f
+            firsts.append(f)
+        if interval is not None and int(interval) not in self.interval_first:
+            self.interval_first[int(interval)] = f
+            firsts.append(f)
+        if firsts:
+            self._first_frames.add(f)
+            if f in self.gt:
+                self.places[f] = self.gt[f]
+        self.last_template_frame = max(self.last_template_frame, f)
+        if d.get("is_loop_closure"):
+            best = int(d.get("best_interval", -1))
+            matched = self.interval_first.get(best, -1) if interval is not None and best >= 0 \
+                else self.template_first.get(tid, -1)
+            self.closures_waiting.append((f, msg.stamp, tid, matched, self.gt.get(f), d.get("best_score"),
+                                          d.get("second_score")))
+        # true positions of frames whose template has come are needed only as places
+        for g in [g for g in self.gt if g < f]:
+            del self.gt[g]
+        self._settle_closures()
+
+    def _groundtruth(self, frame: int, pose: Any) -> None:
+        xy = (float(pose[0]), float(pose[1]))
+        self.gt_last_frame = max(self.gt_last_frame, frame)
+        if frame in self._first_frames:
+            self.places[frame] = xy
+        if frame >= self.last_template_frame:
+            self.gt[frame] = xy
+        self.closures_waiting = [r if r[4] is not None or r[0] != frame else (*r[:4], xy, *r[5:])
+                                 for r in self.closures_waiting]
+        self._settle_closures()
+
+    def _settle_closures(self, final: bool = False) -> None:
+        """Write the waiting closure rows, in order, whose true distance is known or will never be."""
+        while self.closures_waiting:
+            f, stamp, tid, matched, pos, score, second = self.closures_waiting[0]
+            place = self.places.get(matched)
+            no_gt = (self.gt_last_frame > f and pos is None) or \
+                (self.gt_last_frame < 0 and len(self.closures_waiting) > GT_WAIT_ROWS)
+            if not (final or no_gt or (pos is not None and place is not None)
+                    or (pos is not None and matched < self.gt_last_frame)):
+                return
+            self.closures_waiting.pop(0)
+            dist = None if pos is None or place is None else float(np.hypot(pos[0] - place[0], pos[1] - place[1]))
+            self._add("c", (f, stamp, tid, matched, dist, score, second), self.closures, closure_line)
 
     def _add(self, kind: str, row: tuple, rows: list, line: Any) -> None:
         if not self.run_dir:
@@ -121,7 +227,7 @@ class RecorderNode(Node):
     # ------------------------------------------------------------------ files
     def _paths(self) -> dict[str, Path]:
         out = Path(self.run_dir)
-        return {"t": out / TEMPLATES, "p": out / TRAJECTORY, "j": out / JOURNAL}
+        return {"t": out / TEMPLATES, "p": out / TRAJECTORY, "c": out / CLOSURES, "j": out / JOURNAL}
 
     def _open(self) -> None:
         """Open the files at the first row (or at the end): afresh for a new run, as they are for a
@@ -142,7 +248,8 @@ class RecorderNode(Node):
         # the rows held in memory (the restored state's, and any that came while the files could not
         # be opened) that are not in the files yet: all of them for new files
         self._backlog.clear()
-        for kind, rows, line in (("t", self.templates, template_line), ("p", self.trajectory, trajectory_line)):
+        for kind, rows, line in (("t", self.templates, template_line), ("p", self.trajectory, trajectory_line),
+                                 ("c", self.closures, closure_line)):
             for r in rows:
                 if r[0] not in self._written[kind]:
                     self._backlog.append((kind, r[0], line(r).encode()))
@@ -152,28 +259,33 @@ class RecorderNode(Node):
         if self.run_id:
             self._journal = AppendFile(paths["j"], truncate=True)
             self._journal.append(f"run {self.run_id}\n".encode())
-        files = {"t": AppendFile(paths["t"], truncate=True), "p": AppendFile(paths["p"], truncate=True)}
+        files = {k: AppendFile(paths[k], truncate=True) for k in ("t", "p", "c")}
         files["t"].append(TEMPLATES_HEADER.encode())
+        files["c"].append(CLOSURES_HEADER.encode())
         self._files = files
 
     def _reopen(self, paths: dict[str, Path], journal: list[bytes]) -> None:
         """A restart of this run's worker: keep the complete rows the journal knows, cut the rest."""
+        kinds = ("t", "p", "c")
+        headers = {"t": TEMPLATES_HEADER.encode(), "p": b"", "c": CLOSURES_HEADER.encode()}
         entries: list[tuple[str, int]] = []
         for raw in journal[1:]:
             parts = raw.split()
-            if len(parts) == 2 and parts[0] in (b"t", b"p") and parts[1].isdigit():
+            if len(parts) == 2 and parts[0].decode(errors="replace") in kinds and parts[1].isdigit():
                 entries.append((parts[0].decode(), int(parts[1])))
-        lines = {"t": complete_lines(paths["t"]), "p": complete_lines(paths["p"])}
-        header = TEMPLATES_HEADER.encode()
-        has_header = bool(lines["t"]) and lines["t"][0] == header
-        rows = {"t": lines["t"][1:] if has_header else [], "p": lines["p"]}
-        keep = {k: min(len(rows[k]), sum(1 for e, _ in entries if e == k)) for k in ("t", "p")}
-        files = {k: AppendFile(paths[k]) for k in ("t", "p")}
-        files["t"].cut(len(header) + sum(map(len, rows["t"][:keep["t"]])) if has_header else 0)
-        if not has_header:
-            files["t"].append(header)
-        files["p"].cut(sum(map(len, rows["p"][:keep["p"]])))
-        kept, seen = [], {"t": 0, "p": 0}
+        files = {}
+        keep = {}
+        for k in kinds:
+            lines = complete_lines(paths[k]) if paths[k].exists() else []
+            header = headers[k]
+            has_header = not header or (bool(lines) and lines[0] == header)
+            rows = lines[1:] if header and has_header else (lines if not header else [])
+            keep[k] = min(len(rows), sum(1 for e, _ in entries if e == k))
+            files[k] = AppendFile(paths[k])
+            files[k].cut(len(header) + sum(map(len, rows[:keep[k]])) if has_header else 0)
+            if not has_header:
+                files[k].append(header)
+        kept, seen = [], dict.fromkeys(kinds, 0)
         for kind, frame in entries:
             if seen[kind] < keep[kind]:
                 seen[kind] += 1
@@ -182,8 +294,8 @@ class RecorderNode(Node):
         write_atomic(paths["j"], (f"run {self.run_id}\n" + "".join(f"{k} {f}\n" for k, f in kept)).encode())
         self._journal = AppendFile(paths["j"])
         self._files = files
-        log.warning("recorder: restarted; kept %d template rows and %d trajectory rows written before",
-                    keep["t"], keep["p"])
+        log.warning("recorder: restarted; kept %d template rows, %d trajectory rows and %d closure rows "
+                    "written before", keep["t"], keep["p"], keep["c"])
 
     def _write_backlog(self) -> None:
         """Append the waiting rows in order (journal entry first, then the row); stop at a failure,
@@ -217,6 +329,7 @@ class RecorderNode(Node):
                       describe_write_error(path, exc))
 
     def flush(self) -> Output:
+        self._settle_closures(final=True)
         if not self.run_dir:
             return []
         self._retry_at = 0.0  # the end: one more attempt at whatever is waiting
@@ -244,21 +357,57 @@ class RecorderNode(Node):
         self._files, self._journal = None, None
 
     def info(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"template_rows": len(self.templates), "trajectory_rows": len(self.trajectory)}
+        out: dict[str, Any] = {"template_rows": len(self.templates), "trajectory_rows": len(self.trajectory),
+                               "closure_rows": len(self.closures)}
         if self._backlog:
             out["rows_not_written"] = len(self._backlog)
         return out
 
     def state_dict(self) -> dict[str, Any]:
-        return {"templates": [list(r) for r in self.templates], "trajectory": [list(r) for r in self.trajectory]}
+        def ints(d: dict[int, int]) -> np.ndarray:
+            return np.array(sorted(d.items()), dtype=np.int64).reshape(-1, 2)
+
+        def where(d: dict[int, tuple[float, float]]) -> np.ndarray:
+            return np.array([(k, *v) for k, v in sorted(d.items())], dtype=np.float64).reshape(-1, 3)
+
+        return {"templates": [list(r) for r in self.templates], "trajectory": [list(r) for r in self.trajectory],
+                "closures": [list(r) for r in self.closures],
+                "closures_waiting": [[*r[:4], None if r[4] is None else list(r[4]), r[5], r[6]]
+                                     for r in self.closures_waiting],
+                "template_first": ints(self.template_first), "interval_first": ints(self.interval_first),
+                "places": where(self.places), "gt": where(self.gt), "gt_last_frame": self.gt_last_frame,
+                "last_template_frame": self.last_template_frame}
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
         self.templates = [(int(r[0]), float(r[1]), int(r[2]), int(r[3]), int(r[4]), r[5]) for r in st["templates"]]
         self.trajectory = [(int(r[0]), float(r[1]), float(r[2]), float(r[3]), float(r[4]), int(r[5]))
                            for r in st["trajectory"]]
+        # closures: a state saved before closures.csv existed has none of these keys
+        self.closures = [(int(r[0]), float(r[1]), int(r[2]), int(r[3]), None if r[4] is None else float(r[4]),
+                          r[5], r[6]) for r in st.get("closures", [])]
+        self.closures_waiting = [(int(r[0]), float(r[1]), int(r[2]), int(r[3]),
+                                  None if r[4] is None else (float(r[4][0]), float(r[4][1])), r[5], r[6])
+                                 for r in st.get("closures_waiting", [])]
+        self.template_first = {int(k): int(v) for k, v in np.asarray(st.get("template_first", []),
+                                                                     dtype=np.int64).reshape(-1, 2)}
+        self.interval_first = {int(k): int(v) for k, v in np.asarray(st.get("interval_first", []),
+                                                                     dtype=np.int64).reshape(-1, 2)}
+        self.places = {int(r[0]): (float(r[1]), float(r[2]))
+                       for r in np.asarray(st.get("places", []), dtype=np.float64).reshape(-1, 3)}
+        self.gt = {int(r[0]): (float(r[1]), float(r[2]))
+                   for r in np.asarray(st.get("gt", []), dtype=np.float64).reshape(-1, 3)}
+        self.gt_last_frame = int(st.get("gt_last_frame", -1))
+        self.last_template_frame = int(st.get("last_template_frame", -1))
+        self._first_frames = set(self.template_first.values()) | set(self.interval_first.values())
 
     def new_session(self) -> None:
         self.templates, self.trajectory, self.map_export = [], [], None  # this session's outputs only
+        self.closures, self.closures_waiting = [], []
+        # an old session's templates may be matched again: keep where they were first seen, but a
+        # new session's frame numbers start afresh, so its first frames are no places of this one
+        self.template_first, self.interval_first, self.places, self.gt = {}, {}, {}, {}
+        self._first_frames = set()
+        self.gt_last_frame = self.last_template_frame = -1
 
 
 def make_node() -> RecorderNode:

@@ -12,7 +12,8 @@ from .topics import SDR, VISUAL_TEMPLATE
 
 
 class SpatialViewNode(Node):
-    """``sdr`` -> ``visual_template`` (template id, loop-closure flag, best interval and its score)."""
+    """``sdr`` -> ``visual_template`` (template id, loop-closure flag, best interval and its score,
+    the runner-up interval and its score, the current interval)."""
 
     inputs = (SDR,)
     outputs = (VISUAL_TEMPLATE,)
@@ -32,7 +33,8 @@ class SpatialViewNode(Node):
             raise StageInputError(str(exc)) from None
         self.loops += res["is_loop_closure"]
         # best_score stays an int (an overlap count): templates.csv writes it as the algorithm gave it
-        data = {k: res[k] for k in ("id", "is_loop_closure", "best_interval", "relative_rad", "best_score")}
+        data = {k: res[k] for k in ("id", "is_loop_closure", "best_interval", "relative_rad", "best_score",
+                                    "second_interval", "second_score", "interval")}
         return [(VISUAL_TEMPLATE, msg.derive(VISUAL_TEMPLATE, data))]
 
     def info(self) -> dict[str, Any]:

@@ -33,6 +33,12 @@ VISUAL_TEMPLATE = Topic("visual_template", {
     # the score of the best candidate (D: an overlap count, an int; local view: a match error, a
     # float, inf before the first comparison)
     "best_score": Field("float", optional=True),
+    # the front end's runner-up, for the per-closure margin (closures.csv): D's second-best
+    # interval and its overlap, the oracle's second-nearest template and its distance
+    "second_interval": Field("int", optional=True),
+    "second_score": Field("float", optional=True),
+    # D's current interval (the recorder maps a matched interval to the frame that opened it)
+    "interval": Field("int", optional=True),
 })
 #: The pose cells' output, one per odometry sample: the action for the experience map and the
 #: odometry it integrates, so that the map needs no other topic and dead reckoning stays in the

@@ -1,0 +1,106 @@
+"""The oracle front end: template ids from ground truth instead of images (issue #14, a diagnosis tool).
+
+It replaces A, B, C and D (`neoslam run --oracle-templates`), so the back end (pose cells,
+experience map) gets the best template stream a place-recognition front end could give. Comparing
+its map with a real run separates the front end's error from the back end's: a map that is bad
+with the oracle is the back end's fault, and the distance between the oracle's map and a run's is
+what the front end costs.
+
+Per frame, with the true pose (x, y, theta):
+
+* a template j is a candidate when its place p_j (the true position of the frame that created it)
+  is within ``radius_m`` of the true position and its heading within ``heading_tolerance_deg`` of
+  the true heading (a camera facing the other way sees another view, so with the default 45 deg the
+  oracle is the best a forward camera's front end could do; 180 closes every revisit);
+* the nearest candidate is the frame's template; with no candidate a new template is created
+  here (ids consecutive from 0);
+* a loop closure is a match to a template the robot had left before (a return to a place): every
+  frame of a return is one, as every frame D matches to an older interval is, while the frames of
+  a template's first visit are not;
+* the score is the distance to the matched template's place (m) and the runner-up's score the
+  distance to the second-nearest candidate (None when there is none).
+
+``radius_m`` defaults (``None``) to the experience map's spacing,
+``exp_delta_pc_threshold * pc_cell_x_size`` of the run's pose cells (0.5 m for the shipped configs'
+0.25 m cells and threshold 2): one template per experience, so that every closure the oracle
+makes is within one experience spacing of the truth.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from ._config import make_config
+from .errors import InvalidInput
+
+
+class OracleConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    #: a template's reach (m); None: exp_delta_pc_threshold * pc_cell_x_size of the pose cells
+    radius_m: float | None = Field(None, gt=0)
+    #: how far (deg) the heading may differ from the template's; 180 ignores the heading
+    heading_tolerance_deg: float = Field(45.0, gt=0, le=180)
+
+
+class OracleTemplates:
+    """True pose -> (template id, loop-closure flag, distance to the match, runner-up's distance)."""
+
+    def __init__(self, config: OracleConfig | None = None, **overrides: Any) -> None:
+        cfg = self.config = make_config(OracleConfig, config, overrides)
+        if cfg.radius_m is None:
+            raise ValueError("OracleTemplates needs radius_m (the oracle pipeline derives it from the pose cells)")
+        self.radius = float(cfg.radius_m)
+        self.tolerance = math.radians(cfg.heading_tolerance_deg)
+        self._places = np.zeros((256, 3))
+        self.n_templates = 0
+        self.current = -1
+        #: templates the robot has left at least once (a match to one of them is a return)
+        self._left = np.zeros(256, dtype=bool)
+
+    @property
+    def places(self) -> np.ndarray:
+        """(n, 3): each template's true (x, y, theta) where it was created."""
+        return self._places[: self.n_templates]
+
+    def compute(self, pose: Any) -> dict[str, Any]:
+        p = np.asarray(pose, dtype=np.float64).ravel()
+        if p.shape != (3,) or not np.isfinite(p).all():
+            raise InvalidInput(f"a true pose must be 3 finite numbers (x, y, theta), got {pose!r}")
+        pl = self.places
+        dist = np.hypot(pl[:, 0] - p[0], pl[:, 1] - p[1])
+        dth = np.abs(np.remainder(pl[:, 2] - p[2] + math.pi, 2 * math.pi) - math.pi)
+        cand = np.flatnonzero((dist <= self.radius) & (dth <= self.tolerance + 1e-12))
+        second: float | None = None
+        if cand.size:
+            order = cand[np.argsort(dist[cand], kind="stable")]
+            tid, score = int(order[0]), float(dist[order[0]])
+            if order.size > 1:
+                second = float(dist[order[1]])
+        else:
+            if self.n_templates == self._places.shape[0]:
+                self._places = np.concatenate([self._places, np.zeros_like(self._places)])
+                self._left = np.concatenate([self._left, np.zeros_like(self._left)])
+            tid, score = self.n_templates, 0.0
+            self._places[tid] = p
+            self.n_templates += 1
+        if self.current >= 0 and tid != self.current:
+            self._left[self.current] = True
+        loop = bool(self._left[tid])
+        self.current = tid
+        return {"id": tid, "is_loop_closure": bool(loop), "best_score": score, "second_score": second}
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"places": self.places.copy(), "left": self._left[: self.n_templates].copy(),
+                "current": self.current}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        places = np.asarray(state["places"], dtype=np.float64).reshape(-1, 3)
+        self._places = np.concatenate([places, np.zeros((256, 3))])
+        self._left = np.concatenate([np.asarray(state["left"], dtype=bool).ravel(), np.zeros(256, dtype=bool)])
+        self.n_templates = len(places)
+        self.current = int(state["current"])

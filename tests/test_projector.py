@@ -162,3 +162,62 @@ def test_nan_features_are_rejected():
     msg = Message("visual_features", 3, 0.3, {"features": bad, "backbone": "random_alexnet"})
     with pytest.raises(PN.StageInputError, match="NaN"):
         stage.process("visual_features", msg)
+
+
+# ------------------------------------------------------------------ float16 storage of P (#16)
+
+def test_half_widening_is_exact_for_every_finite_half():
+    # P stored as binary16 bit patterns: the kernel must read each as exactly the float32 value
+    # IEEE 754 gives it (numpy's float16 -> float32 is the reference). One row of W holding all
+    # 63 488 finite patterns, f = [1]: out = 0 + 1 * w + 0, exact (-0 reads as +0).
+    allh = np.arange(65536, dtype=np.uint16)
+    finite = allh[np.isfinite(allh.view(np.float16))]
+    out = np.empty((1, finite.size), np.float32)
+    P._project_rows_half(np.ones((1, 1), np.float32), finite.reshape(1, -1), out)
+    np.testing.assert_array_equal(out[0], finite.view(np.float16).astype(np.float32))
+
+
+def test_float16_storage_equals_float32_on_the_rounded_matrix():
+    # the float16 path computes exactly what the float32 path computes on P rounded to half
+    # (same summation order, float32 accumulators): equal bits, not merely close values
+    f16 = P.BinaryProjector(input_dim=3001, seed=4, matrix_dtype="float16")
+    ref = P.BinaryProjector(input_dim=3001, seed=4)
+    assert f16.matrix.dtype == np.uint16 and f16.matrix.nbytes == ref.matrix.nbytes // 2
+    rounded = ref.matrix.astype(np.float16).astype(np.float32)
+    np.testing.assert_array_equal(f16.matrix_float32(), rounded)  # the same draws, rounded
+    ref.matrix = rounded
+    F = np.random.default_rng(6).standard_normal((5, 3001)).astype(np.float32)
+    np.testing.assert_array_equal(f16.project(F).view(np.uint32), ref.project(F).view(np.uint32))
+    for a, b in zip(f16.bits_batch(F), ref.bits_batch(F), strict=True):
+        np.testing.assert_array_equal(a, b)
+    # and it is still d = P f (with P's rounded entries)
+    expected = F.astype(np.float64) @ rounded.astype(np.float64)
+    np.testing.assert_allclose(f16.project(F), expected, rtol=1e-4, atol=1e-3)
+
+
+def test_float16_storage_does_not_depend_on_batching_or_threads():
+    bp = P.BinaryProjector(input_dim=3000, seed=4, matrix_dtype="float16")
+    F = np.random.default_rng(5).standard_normal((8, 3000)).astype(np.float32)
+    whole = bp.project(F)
+    for size in (1, 3, 5):
+        parts = np.concatenate([bp.project(F[i:i + size]) for i in range(0, 8, size)])
+        np.testing.assert_array_equal(parts, whole)
+    two = P.BinaryProjector(input_dim=3000, seed=4, matrix_dtype="float16", threads=2)
+    np.testing.assert_array_equal(two.project(F), whole)
+
+
+def test_bin_round_trip_with_float16_storage(tmp_path):
+    # the .bin file stays float32: import rounds it to half in memory, export writes float32
+    m = P.gaussian_matrix(40, seed=1)
+    path = tmp_path / "randomMatrix.bin"
+    P.save_bin(m, path)
+    bp = P.BinaryProjector(input_dim=40, matrix_path=str(path), matrix_dtype="float16")
+    np.testing.assert_array_equal(bp.matrix_float32(), m.astype(np.float16).astype(np.float32))
+    out = tmp_path / "exported.bin"
+    P.save_bin(bp.matrix_float32(), out)
+    assert out.stat().st_size == 40 * 1024 * 4
+    np.testing.assert_array_equal(P.load_bin(out, 40), m.astype(np.float16).astype(np.float32))
+    full = P.BinaryProjector(input_dim=40, matrix_path=str(path))
+    np.testing.assert_array_equal(full.matrix_float32(), m)
+    with pytest.raises(ValueError, match="literal_error|float32"):
+        P.BinaryProjector(input_dim=40, matrix_dtype="int8")

@@ -189,3 +189,111 @@ def test_index_compaction_gives_the_same_templates_as_a_brute_force_scan(monkeyp
                             params["exclude_recent_intervals"])
     assert got == expected
     assert len(set(expected)) < len(frames)  # loop closures happened, so the test exercises them
+
+
+# ------------------------------------------------------------- bounded (sublinear) search (#16)
+
+def _route_stream(n_frames, n_places, seed, noise, cells=32):
+    """SDRs shaped like the neocortex's: 512 active columns of 2048, one winner cell in each, so
+    the posting lists are long and overlap like real ones. Frames drift through places (3 frames
+    a place, lap after lap: revisits) and each frame swaps a fraction ``noise`` of its cells for
+    random ones (another winner cell, another column)."""
+    rng = np.random.default_rng(seed)
+    base = [np.sort(rng.choice(2048, 512, replace=False)) * cells + rng.integers(0, cells, 512)
+            for _ in range(n_places)]
+    out = []
+    for t in range(n_frames):
+        s = base[(t // 3) % n_places].copy()
+        swap = rng.random(512) < noise
+        s[swap] = rng.choice(2048 * cells, int(swap.sum()), replace=False)
+        out.append(np.unique(s).astype(np.uint32))
+    return out
+
+
+def _brute_force_full(frames, theta_alpha, theta_rho, theta_sigma, omega):
+    """Every output of compute() by the paper's rule with Python sets, scoring every interval:
+    (id, is_loop_closure, best_interval, best_score) and the runner-up (interval, score)."""
+    unions, start, end, templates, out = [], [], [], [], []
+    n_templates, current = 0, -1
+    for t, y in enumerate(frames):
+        y = set(int(v) for v in y)
+        new = not unions or not (len(unions[-1] & y) >= theta_alpha and end[-1] - start[-1] < theta_rho)
+        if new:
+            unions.append(set(y))
+            start.append(t)
+            end.append(t)
+            templates.append(-1)
+        else:
+            unions[-1] |= y
+            end[-1] = t
+        scores = [len(u & y) for u in unions[: max(0, len(unions) - omega)]]
+        ranked = sorted(range(len(scores)), key=lambda k: (-scores[k], k))
+        best = ranked[0] if ranked else -1
+        best_score = scores[best] if ranked else 0
+        second, second_score = (ranked[1], scores[ranked[1]]) if len(ranked) > 1 else (-1, 0)
+        loop = best >= 0 and best_score > theta_sigma
+        if loop:
+            template = templates[best]
+        elif new:
+            template, n_templates = n_templates, n_templates + 1
+        else:
+            template = current
+        if new:
+            templates[-1] = template
+        current = template
+        out.append((template, loop, best if loop else -1, best_score, second, second_score))
+    return out
+
+
+@pytest.mark.parametrize("noise,theta_sigma", [(0.08, 440), (0.25, 300)])
+def test_bounded_search_equals_a_brute_force_scan_of_every_interval(monkeypatch, noise, theta_sigma):
+    import neoslam_stream.algorithms.spatial_view as sv
+
+    # merges every few frames: the search reads the CSR part, a frozen part and the linked part
+    monkeypatch.setattr(sv, "COMPACT_MIN", 3000)
+    frames = _route_stream(420, 25, seed=1, noise=noise)
+    params = dict(theta_alpha=384, theta_rho=3, theta_sigma=theta_sigma, exclude_recent_intervals=3)
+    svc = sv.SpatialViewCells(**params)
+    got = []
+    for f in frames:
+        r = svc.compute(f)
+        got.append((r["id"], r["is_loop_closure"], r["best_interval"], r["best_score"], *svc.runner_up))
+    expected = _brute_force_full(frames, params["theta_alpha"], params["theta_rho"], theta_sigma,
+                                 params["exclude_recent_intervals"])
+    assert got == expected
+    assert svc.merges >= 3
+    loops = sum(e[1] for e in expected)
+    assert 0 < loops < len(frames)  # closures and frames without one (best_score below theta_sigma)
+
+
+def test_bounded_search_equals_exhaustive_scoring_on_a_long_stream(monkeypatch):
+    import neoslam_stream.algorithms.spatial_view as sv
+
+    monkeypatch.setattr(sv, "COMPACT_MIN", 20000)
+    frames = _route_stream(2400, 70, seed=2, noise=0.12) + _route_stream(300, 40, seed=3, noise=0.5)
+    a = sv.SpatialViewCells(theta_sigma=455)
+    a.exhaustive = True
+    b = sv.SpatialViewCells(theta_sigma=455)
+    read = 0
+    for i, f in enumerate(frames):
+        ra, rb = a.compute(f), b.compute(f)
+        assert (ra, a.runner_up) == (rb, b.runner_up), i
+        read += b.last_search[0]
+    assert b.merges >= 5 and a.n_intervals > 500
+    # and it is a bounded search: far fewer postings read than the index holds per frame
+    assert read < 0.5 * sum(len(u) for u in b.unions) * len(frames) / 2
+
+
+def test_bounded_search_edge_cases():
+    # one candidate; candidates sharing no cell (lowest index, score 0); ties (lowest index)
+    c = svc(exclude_recent_intervals=1, theta_sigma=5)
+    c.compute(block(0))
+    c.compute(block(1))
+    assert c.runner_up == (-1, 0)  # one candidate: interval 0
+    r = c.compute(block(5))  # shares nothing with 0 or 1: best 0 (score 0), runner-up 1
+    assert r["best_score"] == 0 and c.runner_up == (1, 0)
+    r = c.compute(block(1))  # intervals 0, 1, 2 are candidates; 1 is identical, 0 and 2 tie at 0
+    assert r["best_score"] == 6 and c.runner_up == (0, 0)
+    c.compute(block(6))  # interval 4; interval 3 (block 1) becomes a candidate
+    r = c.compute(block(1))  # interval 5: intervals 1 and 3 tie at 6, the lower index is the best
+    assert (r["best_interval"], r["best_score"]) == (1, 6) and c.runner_up == (3, 6)

@@ -13,6 +13,14 @@ index. Output: sorted uint16 bit indices.
 Difference from the ROS 2 C++ on purpose: its two ``partial_sort`` calls mark the 256 smallest in
 the first half and ranks 256..511 in the second, never the largest values; we follow the paper.
 
+``matrix_dtype: float16`` stores P's entries rounded to IEEE binary16 (133 MB instead of 265 MB:
+the product is bound by reading P, once per frame or micro-batch). Every entry is widened back to
+float32 where it is read and the sums run in the same fixed order with float32 accumulators, so the
+result is exactly the float32 projection with the rounded matrix (still a Gaussian projection: the
+entries are N(0, 1) draws with 11 significant bits), independent of batch size and thread count.
+The ``.bin`` file stays float32 (import rounds, :meth:`BinaryProjector.matrix_float32` exports).
+Default float32: measured agreement and closures in docs/performance.md.
+
 ``projection: sparse`` is Li et al.'s very sparse random projection (entries +-sqrt(1/density) with
 density 1/sqrt(n), zero otherwise), seeded, as a scipy.sparse matrix: ~1/255 of the work.
 
@@ -32,7 +40,9 @@ from typing import Any, Literal
 
 import numba
 import numpy as np
-from numba import njit, prange
+from llvmlite import ir
+from numba import njit, prange, types
+from numba.extending import intrinsic
 from pydantic import BaseModel, ConfigDict, Field
 
 from ._config import make_config
@@ -56,15 +66,44 @@ class ProjectorConfig(BaseModel):
     #: running-mean window W for feature centring; 0 = off (the paper)
     centre_window: int = Field(0, ge=0)
     threads: int = Field(1, ge=1)
+    #: storage precision of the Gaussian matrix P: float32 (265 MB, the reference) or float16
+    #: (133 MB, half the memory traffic per frame; every product still accumulates in float32)
+    matrix_dtype: Literal["float32", "float16"] = "float32"
 
 
-def gaussian_matrix(n: int, seed: int, m: int = N_PROJ) -> np.ndarray:
-    """(n, m) float32 N(0,1), filled row chunk by row chunk from one seeded stream."""
+def gaussian_matrix(n: int, seed: int, m: int = N_PROJ, half: bool = False) -> np.ndarray:
+    """(n, m) float32 N(0,1), filled row chunk by row chunk from one seeded stream.
+
+    ``half``: the same draws rounded to binary16, returned as their uint16 bit patterns (see
+    :func:`to_half_bits`), built chunk by chunk so no float32 copy of P ever exists.
+    """
     rng = np.random.default_rng(seed)
-    out = np.empty((n, m), dtype=np.float32)
+    out = np.empty((n, m), dtype=np.uint16 if half else np.float32)
+    buf = np.empty((min(n, _CHUNK_ROWS), m), dtype=np.float32) if half else None
     for start in range(0, n, _CHUNK_ROWS):
         stop = min(n, start + _CHUNK_ROWS)
-        rng.standard_normal((stop - start, m), dtype=np.float32, out=out[start:stop])
+        if buf is None:
+            rng.standard_normal((stop - start, m), dtype=np.float32, out=out[start:stop])
+        else:
+            chunk = buf[: stop - start]
+            rng.standard_normal((stop - start, m), dtype=np.float32, out=chunk)
+            out[start:stop] = chunk.astype(np.float16).view(np.uint16)
+    return out
+
+
+def half_bits_to_float32(bits: np.ndarray) -> np.ndarray:
+    """float32 values of binary16 bit patterns (exact: every half is a float32)."""
+    return np.asarray(bits, dtype=np.uint16).view(np.float16).astype(np.float32)
+
+
+def to_half_bits(matrix: np.ndarray) -> np.ndarray:
+    """IEEE binary16 bit patterns (uint16) of a float32 matrix, round to nearest even, converted row
+    chunk by row chunk (no full-size temporary). numba has no float16 type on the CPU, so the
+    kernel reads these bits and widens them itself (:func:`_half_rows_to_float`)."""
+    out = np.empty(matrix.shape, dtype=np.uint16)
+    for start in range(0, matrix.shape[0], _CHUNK_ROWS):
+        stop = min(matrix.shape[0], start + _CHUNK_ROWS)
+        out[start:stop] = np.asarray(matrix[start:stop], dtype=np.float32).astype(np.float16).view(np.uint16)
     return out
 
 
@@ -156,6 +195,70 @@ def _project_rows(F, W, out):  # pragma: no cover - compiled
             out[r, j] = total
 
 
+@intrinsic
+def _half_to_float(typingctx, h):  # pragma: no cover - compiled
+    """float32 value of one binary16 bit pattern (uint16): LLVM's exact ``fpext half -> float``.
+
+    numba has no float16 type on the CPU; this lowers to the F16C instruction ``vcvtph2ps`` where
+    the CPU has it (vectorised with the loop), else to the compiler runtime's exact conversion.
+    """
+    if h != types.uint16:
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.fpext(builder.bitcast(args[0], ir.HalfType()), ir.FloatType())
+
+    return types.float32(types.uint16), codegen
+
+
+@njit(parallel=True, cache=True)
+def _project_rows_half(F, H, out):  # pragma: no cover - compiled
+    """:func:`_project_rows` with P stored as binary16 bit patterns H (uint16, (n, m)).
+
+    Each entry is widened to float32 exactly where it is read, then accumulated exactly like
+    :func:`_project_rows` (same chunks, same order, float32 accumulators), so the output equals :func:`_project_rows` on the float32 matrix ``H as float16 -> float32`` bit for
+    bit, for any batch size and thread count; only half the bytes come from memory.
+    """
+    n, m = H.shape
+    b = F.shape[0]
+    nchunk = PROJECTION_CHUNKS
+    step = ((n + nchunk - 1) // nchunk + 3) // 4 * 4
+    part = np.zeros((nchunk, b, m), np.float32)
+    for c in prange(nchunk):
+        lo = c * step
+        hi = min(n, (c + 1) * step)
+        i = lo
+        while i + 4 <= hi:
+            h0 = H[i]
+            h1 = H[i + 1]
+            h2 = H[i + 2]
+            h3 = H[i + 3]
+            for r in range(b):
+                acc = part[c, r]
+                a0 = F[r, i]
+                a1 = F[r, i + 1]
+                a2 = F[r, i + 2]
+                a3 = F[r, i + 3]
+                for j in range(m):
+                    acc[j] += ((a0 * _half_to_float(h0[j]) + a1 * _half_to_float(h1[j]))
+                               + (a2 * _half_to_float(h2[j]) + a3 * _half_to_float(h3[j])))
+            i += 4
+        while i < hi:
+            h0 = H[i]
+            for r in range(b):
+                acc = part[c, r]
+                a0 = F[r, i]
+                for j in range(m):
+                    acc[j] += a0 * _half_to_float(h0[j])
+            i += 1
+    for r in range(b):
+        for j in range(m):
+            total = part[0, r, j]
+            for c in range(1, nchunk):
+                total += part[c, r, j]
+            out[r, j] = total
+
+
 @njit(cache=True)
 def _slsbh_rows(D, k, out):  # pragma: no cover - compiled
     """sLSBH of every row of D into out (b, 2k), the same rule as :func:`slsbh`."""
@@ -198,8 +301,13 @@ class BinaryProjector:
         self.mean = np.zeros(cfg.input_dim, dtype=np.float64)
         self.n_seen = 0
         input_dim, matrix_path = cfg.input_dim, cfg.matrix_path
+        self.matrix_dtype = cfg.matrix_dtype
         if projection == "gaussian":
-            self.matrix = load_bin(matrix_path, input_dim) if matrix_path else gaussian_matrix(input_dim, seed)
+            half = cfg.matrix_dtype == "float16"
+            if matrix_path:
+                self.matrix = to_half_bits(load_bin(matrix_path, input_dim)) if half else load_bin(matrix_path, input_dim)
+            else:
+                self.matrix = gaussian_matrix(input_dim, seed, half=half)
         elif projection == "sparse":
             if matrix_path:
                 raise ValueError("matrix_path is only for the gaussian projection")
@@ -208,6 +316,13 @@ class BinaryProjector:
             self._sparse_rows = self.matrix.T.tocsr()
         else:
             raise ValueError(f"unknown projection {projection!r} (gaussian or sparse)")
+
+    def matrix_float32(self) -> np.ndarray:
+        """P as float32 (n, m), e.g. for :func:`save_bin`; with ``matrix_dtype: float16`` the values
+        it uses, i.e. the binary16-rounded ones (a new array: 265 MB at full size)."""
+        if self.projection != "gaussian":
+            raise ValueError("only the gaussian projection has a dense matrix")
+        return half_bits_to_float32(self.matrix) if self.matrix_dtype == "float16" else np.asarray(self.matrix)
 
     def _check(self, feats: np.ndarray) -> np.ndarray:
         f = np.asarray(feats, dtype=np.float32)
@@ -242,7 +357,10 @@ class BinaryProjector:
         else:
             out = np.empty((rows.shape[0], self.matrix.shape[1]), dtype=np.float32)
             numba.set_num_threads(min(self.threads, numba.config.NUMBA_NUM_THREADS))
-            _project_rows(rows, self.matrix, out)
+            if self.matrix_dtype == "float16":
+                _project_rows_half(rows, self.matrix, out)
+            else:
+                _project_rows(rows, self.matrix, out)
         return out[0] if f.ndim == 1 else out
 
     def bits(self, feats: np.ndarray) -> np.ndarray:

@@ -17,7 +17,21 @@ Differences from the ROS 2 NeoSLAM on purpose: interval k's template is interval
 code returns the template of the interval *before* the match, because interval 0 never gets a map
 row), and the first frame opens interval 0 like any other.
 
-Speed: scores come from an inverted index bit -> intervals containing it (posting lists, sorted by
+Speed, the bounded search (#16): only the best candidate k*, its score and the runner-up matter,
+so not every s_k is computed. (1) The last frame's best and runner-up (and their successors) and
+the two newest candidates are scored exactly, s_k = |Y_k & y_t| from Y_k's sorted cells; the
+runner-up's score s2 is a lower bound of the final one. (2) The posting lists of y_t's cells are
+read rarest first; after e of the n lists an interval met in none of them has s_k <= n - e, so
+once n - e < s2 no unseen interval can enter the top two (a tie needs s_k = s2) and reading stops;
+at e = 16, 32, 64... the candidates with the most shared cells so far are scored exactly to raise
+s2. (3) Met candidates, most shared cells first, are scored exactly while their bound
+partial_k + (n - e) can reach s2. The result is the exhaustive argmax with its ties (lowest index)
+bit for bit (tests/test_spatial_view.py checks it against a brute-force scan), and the runner-up
+(``runner_up``); on real SDRs the scores of close intervals are high, so a frame reads the
+rarest ~10 % of its lists and verifies a few candidates. ``exhaustive = True`` scores every
+interval (the reference, below).
+
+Scores (exhaustive) come from an inverted index bit -> intervals containing it (posting lists, sorted by
 interval id because intervals are created in order and unions only grow), summed by a numba loop
 over the ~512 postings of y_t, so one frame costs O(sum of posting lengths), never a Python loop
 over K. The union of each interval is kept as a pyroaring BitMap as the paper describes.
@@ -147,6 +161,157 @@ def _compact(ptr, post, pool, nxt, head, tail, fill):  # pragma: no cover - comp
     return new_ptr, new_post
 
 
+@njit(cache=True, inline="always")
+def _walk_csr(b, ptr, post, limit, partial, touched, n_touched):  # pragma: no cover - compiled
+    """partial[j] += 1 for every candidate j < limit in bit b's list of the CSR part; newly touched
+    candidates are appended to ``touched``. Lists are sorted by interval id across the parts (every
+    posting is appended for the newest interval), so the excluded recent intervals are the tail of
+    each list: stop at the first j >= limit."""
+    for i in range(ptr[b], ptr[b + 1]):
+        j = post[i]
+        if j >= limit:
+            break
+        if partial[j] == 0:
+            touched[n_touched] = j
+            n_touched += 1
+        partial[j] += 1
+    return n_touched
+
+
+@njit(cache=True, inline="always")
+def _walk_linked(b, pool, nxt, head, tail, fill, limit, partial, touched, n_touched):  # pragma: no cover
+    """:func:`_walk_csr` for bit b's list in a linked part."""
+    blk = head[b]
+    while blk != -1:
+        n = fill[b] if blk == tail[b] else BLOCK
+        row = pool[blk]
+        for i in range(n):
+            j = row[i]
+            if j >= limit:
+                return n_touched
+            if partial[j] == 0:
+                touched[n_touched] = j
+                n_touched += 1
+            partial[j] += 1
+        blk = nxt[blk]
+    return n_touched
+
+
+@njit(cache=True, inline="always")
+def _exact(j, u_ptr, u_cells, inq):  # pragma: no cover - compiled
+    """s_j = |Y_j & y_t|: the cells of union j that the query marks in ``inq``."""
+    s = 0
+    for i in range(u_ptr[j], u_ptr[j + 1]):
+        s += inq[u_cells[i]]
+    return s
+
+
+@njit(cache=True, inline="always")
+def _offer(j, s, b1, s1, b2, s2):  # pragma: no cover - compiled
+    """Insert (j, s) into the running top two, ordered by score then lowest index."""
+    if j == b1 or j == b2:
+        return b1, s1, b2, s2
+    if s > s1 or (s == s1 and j < b1):
+        return j, s, b1, s1
+    if s > s2 or (s == s2 and j < b2):
+        return b1, s1, j, s
+    return b1, s1, b2, s2
+
+
+@njit(cache=True)
+def _top2(y, lengths, ptr, post, f_pool, f_next, f_head, f_tail, f_fill, pool, nxt, head, tail, fill,
+          u_ptr, u_cells, limit, hints, inq, partial, touched, bucket):  # pragma: no cover - compiled
+    """The best and runner-up candidates k < limit by s_k = |Y_k & y_t| (ties: lowest index),
+    exactly as exhaustive scoring ranks them, without reading every posting (see the module
+    docstring: score bounds, lists rarest first). Returns (b1, s1, b2, s2, postings read,
+    unions verified); b2 = -1 when limit < 2.
+
+    ``lengths[i]`` is the posting-list length of y[i]. Scratch arrays ``inq`` (sdr_size),
+    ``partial`` (>= limit) are zero on entry and on exit.
+    """
+    n = y.shape[0]
+    big = limit + 1
+    b1, s1, b2, s2 = big, -1, big, -1
+    for c in y:
+        inq[c] = 1
+    verified = 0
+    if limit == 1:
+        s = _exact(0, u_ptr, u_cells, inq)
+        for c in y:
+            inq[c] = 0
+        return 0, s, -1, 0, 0, 1
+    # 1. a lower bound from likely winners (the last frame's, the newest candidates): exact scores
+    for h in hints:
+        if 0 <= h < limit:
+            b1, s1, b2, s2 = _offer(h, _exact(h, u_ptr, u_cells, inq), b1, s1, b2, s2)
+            verified += 1
+    # 2. rarest lists first. After e lists an interval met in none of them scores at most n - e;
+    # once n - e < s2 it cannot enter the top two (a tie needs s = s2), so candidate generation stops.
+    order = np.argsort(lengths, kind="mergesort")
+    n_touched = 0
+    read = 0
+    e = 0
+    next_check = 16
+    while e < n and n - e >= s2:
+        b = y[order[e]]
+        read += lengths[order[e]]
+        n_touched = _walk_csr(b, ptr, post, limit, partial, touched, n_touched)
+        n_touched = _walk_linked(b, f_pool, f_next, f_head, f_tail, f_fill, limit, partial, touched, n_touched)
+        n_touched = _walk_linked(b, pool, nxt, head, tail, fill, limit, partial, touched, n_touched)
+        e += 1
+        if e == next_check:
+            # raise the bound: verify the touched candidates with the most shared bits so far
+            next_check *= 2
+            top = 0
+            for t in range(n_touched):
+                if partial[touched[t]] > top:
+                    top = partial[touched[t]]
+            got = 0
+            for t in range(n_touched):
+                j = touched[t]
+                if partial[j] == top and got < 4:
+                    b1, s1, b2, s2 = _offer(j, _exact(j, u_ptr, u_cells, inq), b1, s1, b2, s2)
+                    verified += 1
+                    got += 1
+    # 3. candidates met so far, most shared bits first: s_j <= partial_j + (n - e); verify exactly
+    # while that bound can reach s2 (then no later one can: the order is by partial, descending)
+    rest = n - e
+    bucket[: e + 2] = 0
+    for t in range(n_touched):
+        bucket[partial[touched[t]]] += 1
+    start = 0
+    for p in range(e, -1, -1):  # counting sort by partial, descending
+        c = bucket[p]
+        bucket[p] = start
+        start += c
+    ranked = np.empty(n_touched, np.int32)
+    for t in range(n_touched):
+        j = touched[t]
+        ranked[bucket[partial[j]]] = j
+        bucket[partial[j]] += 1
+    for t in range(n_touched):
+        j = ranked[t]
+        if partial[j] + rest < s2:
+            break
+        if rest == 0:
+            s = partial[j]
+        else:
+            s = _exact(j, u_ptr, u_cells, inq)
+            verified += 1
+        b1, s1, b2, s2 = _offer(j, s, b1, s1, b2, s2)
+    for t in range(n_touched):
+        partial[touched[t]] = 0
+    for c in y:
+        inq[c] = 0
+    # 4. fewer than two candidates share a bit with y_t: the lowest-index zero scores complete the
+    # top two (every list was read then, so untouched means s = 0)
+    j = 0
+    while s2 < 0 and j < limit:
+        b1, s1, b2, s2 = _offer(j, 0, b1, s1, b2, s2)
+        j += 1
+    return b1, s1, b2, s2, read, verified
+
+
 #: the linked part is merged into the CSR part once it holds this many postings and more than a
 #: quarter of the CSR part (512 intervals of 512 cells: no compaction at all for small maps)
 COMPACT_MIN = 262144
@@ -171,12 +336,53 @@ class SpatialViewCells:
         self.current_template = -1
         self.t = 0
         self._scores = np.zeros(1024, dtype=np.int32)
+        #: True: score every candidate (the reference the bounded search is tested against)
+        self.exhaustive = False
+        #: the runner-up of the last frame (interval, score): -1, 0 when there is none
+        self.runner_up = (-1, 0)
+        #: postings read and unions verified by the last frame's bounded search (bench figures)
+        self.last_search = (0, 0)
+        self._hints = np.full(6, -1, dtype=np.int64)
 
     def _init_storage(self, blocks: int) -> None:
         # compacted part: CSR offsets per bit and the postings
         self._ptr = np.zeros(self.sdr_size + 1, dtype=np.int64)
         self._post = np.zeros(0, dtype=np.int32)
+        # posting-list length per bit (all parts): the bounded search reads the rarest lists first
+        self._count = np.zeros(self.sdr_size, dtype=np.int64)
+        # every union Y_k as sorted cells, one flat array (CSR by interval): exact s_k of a
+        # candidate in O(|Y_k|). Only the newest interval grows, and it is stored last.
+        self._u_ptr = np.zeros(1025, dtype=np.int64)
+        self._u_cells = np.zeros(1 << 16, dtype=np.uint16 if self.sdr_size <= 65536 else np.int32)
+        self._u_n = 0
+        self._partial = np.zeros(1024, dtype=np.int32)
+        self._touched = np.zeros(1024, dtype=np.int32)
+        n = self.sdr_size
+        self._inq = np.zeros(n, dtype=np.uint8)
+        # an empty linked part stands for "no merge in progress" in the bounded search
+        self._no_linked = (np.zeros((1, BLOCK), np.int32), np.full(1, -1, np.int32), np.full(n, -1, np.int32),
+                           np.full(n, -1, np.int32), np.zeros(n, np.int32))
         self._reset_linked(blocks)
+
+    def _store_union(self, k: int, cells: np.ndarray) -> None:
+        """Y_k's sorted cells into the flat store: a new last interval, or the last one rewritten."""
+        if k == self._u_n:
+            self._u_n += 1
+            if self._u_n + 1 > self._u_ptr.shape[0]:
+                self._u_ptr = np.concatenate([self._u_ptr, np.zeros(self._u_ptr.shape[0], np.int64)])
+                grow = self._u_ptr.shape[0]
+                self._partial = np.zeros(grow, dtype=np.int32)
+                self._touched = np.zeros(grow, dtype=np.int32)
+        elif k != self._u_n - 1:
+            raise AssertionError("only the newest interval's union changes")
+        lo = int(self._u_ptr[k])
+        hi = lo + cells.shape[0]
+        if hi > self._u_cells.shape[0]:
+            grown = np.zeros(max(hi, 2 * self._u_cells.shape[0]), dtype=self._u_cells.dtype)
+            grown[:lo] = self._u_cells[:lo]
+            self._u_cells = grown
+        self._u_cells[lo:hi] = cells
+        self._u_ptr[k + 1] = hi
 
     def _reset_linked(self, blocks: int) -> None:
         # linked part: blocks of BLOCK entries in one pool: memory grows with the number of
@@ -203,6 +409,7 @@ class SpatialViewCells:
         self._n_blocks = _append_postings(self._pool, self._next, self._head, self._tail, self._fill,
                                           self._n_blocks, bits, interval)
         self._linked_postings += len(bits)
+        self._count[bits] += 1  # bits are unique
         if self._frozen is not None and self._frozen[1].done():
             self._finish_background_merge()
         if self._frozen is None and self._linked_postings >= max(COMPACT_MIN, self._post.shape[0] // 4):
@@ -273,6 +480,7 @@ class SpatialViewCells:
                 self.interval_end[cur] = self.t
                 if len(added):
                     self._post_bits(np.fromiter(added, dtype=np.int32, count=len(added)), cur)
+                    self._store_union(cur, np.asarray(self.unions[cur].to_array(), dtype=np.int64))
             else:
                 new_interval = True
         if new_interval:
@@ -282,27 +490,16 @@ class SpatialViewCells:
             self.interval_end.append(self.t)
             self.interval_template.append(-1)
             self._post_bits(y, k)
+            self._store_union(k, y)
         limit = self.n_intervals - self.omega
         best, best_score = -1, 0
-        second, second_score = -1, 0  # the runner-up candidate (for the per-closure margin)
+        second, second_score = -1, 0
         if limit > 0:
-            k_all = self.n_intervals
-            if self._scores.shape[0] < k_all:
-                self._scores = np.zeros(max(k_all, 2 * self._scores.shape[0]), dtype=np.int32)
-            scores = self._scores[:k_all]
-            scores[:] = 0
-            _scores_csr(self._ptr, self._post, y, scores)
-            if self._frozen is not None:
-                _scores(*self._frozen[0], y, scores)
-            if self._linked_postings:
-                _scores(self._pool, self._next, self._head, self._tail, self._fill, y, scores)
-            best = int(np.argmax(scores[:limit]))  # first maximum = lowest index
-            best_score = int(scores[best])
-            if limit > 1:
-                cand = scores[:limit]
-                cand[best] = -1  # scores are zeroed before the next frame: no need to restore
-                second = int(np.argmax(cand))
-                second_score = int(cand[second])
+            if self.exhaustive:
+                best, best_score, second, second_score = self._top2_exhaustive(y, limit)
+            else:
+                best, best_score, second, second_score = self._top2_bounded(y, limit)
+        self.runner_up = (second, second_score)
         loop = best >= 0 and best_score > self.theta_sigma
         if loop:
             template = self.interval_template[best]
@@ -318,6 +515,42 @@ class SpatialViewCells:
         return {"id": template, "is_loop_closure": bool(loop), "best_interval": best if loop else -1,
                 "best_score": best_score, "relative_rad": 0.0, "interval": self.n_intervals - 1,
                 "second_interval": second, "second_score": second_score}
+
+    def _top2_exhaustive(self, y: np.ndarray, limit: int) -> tuple[int, int, int, int]:
+        """Every s_k from the whole index (O(sum of posting lengths)): the reference."""
+        k_all = self.n_intervals
+        if self._scores.shape[0] < k_all:
+            self._scores = np.zeros(max(k_all, 2 * self._scores.shape[0]), dtype=np.int32)
+        scores = self._scores[:k_all]
+        scores[:] = 0
+        _scores_csr(self._ptr, self._post, y, scores)
+        if self._frozen is not None:
+            _scores(*self._frozen[0], y, scores)
+        if self._linked_postings:
+            _scores(self._pool, self._next, self._head, self._tail, self._fill, y, scores)
+        cand = scores[:limit]
+        best = int(np.argmax(cand))  # first maximum = lowest index
+        best_score = int(cand[best])
+        second, second_score = -1, 0
+        if limit > 1:
+            cand[best] = -1  # scores are zeroed before the next frame
+            second = int(np.argmax(cand))
+            second_score = int(cand[second])
+        return best, best_score, second, second_score
+
+    def _top2_bounded(self, y: np.ndarray, limit: int) -> tuple[int, int, int, int]:
+        """The same top two as :meth:`_top2_exhaustive` from a bounded search (:func:`_top2`)."""
+        frozen = self._frozen[0] if self._frozen is not None else self._no_linked
+        h = self._hints
+        prev = (int(h[0]), int(h[2]))
+        h[:] = (prev[0], prev[0] + 1, prev[1], prev[1] + 1, limit - 1, limit - 2)
+        b1, s1, b2, s2, read, verified = _top2(
+            y, self._count[y], self._ptr, self._post, *frozen, self._pool, self._next, self._head, self._tail,
+            self._fill, self._u_ptr, self._u_cells, limit, h, self._inq, self._partial, self._touched,
+            np.zeros(y.shape[0] + 2, np.int64))
+        self.last_search = (int(read), int(verified))
+        h[0], h[2] = b1, b2
+        return int(b1), int(s1), int(b2), int(s2)
 
     def warm_up(self) -> None:
         """Compile (or load from numba's cache) every kernel now, on a throw-away copy: disjoint
@@ -346,6 +579,7 @@ class SpatialViewCells:
             a = np.asarray(arr, dtype=np.int32)
             self.unions.append(BitMap(a))
             self._post_bits(a, k)
+            self._store_union(k, np.sort(a))
         self.compact()
         self.interval_start = [int(x) for x in state["start"]]
         self.interval_end = [int(x) for x in state["end"]]

@@ -1,0 +1,153 @@
+"""Real pipeline data for the front-end bench (#16): features, bits, SDRs and templates of the
+synthetic world recorded from the in-process NeoSLAM front end, and what float16 storage of B's
+matrix changes on them and on Nordland.
+
+``record_synthetic`` runs ``NeoSLAM(load_config("default"), backend=False)`` (A, B, C, D exactly as
+``neoslam run`` configures them) over one route of the embedded synthetic world and keeps every
+frame's A features, B bits, C winner cells and D result. The recording is cached in /tmp (A's
+features are 88 kB a frame, too large for bench/results); it is regenerated when absent.
+
+Run alone: ``.venv/bin/python bench/real_sdrs.py`` (prints the float16 agreement figures).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+CACHE = Path("/tmp/neoslam_bench_real_synthetic.npz")
+
+
+def record_synthetic(frames: int | None = None, cache: Path | None = CACHE) -> dict[str, Any]:
+    """{features (T, n) float32, bits list, cells list, ids, loops, best_score, backbone}."""
+    if cache is not None and cache.is_file():
+        z = np.load(cache, allow_pickle=False)
+        n = int(z["n"])
+        if frames is None or n >= frames:
+            t = n if frames is None else frames
+            bo, co = z["bits_off"], z["cells_off"]
+            return {"features": z["features"][:t], "bits": [z["bits"][bo[i]:bo[i + 1]] for i in range(t)],
+                    "cells": [z["cells"][co[i]:co[i + 1]] for i in range(t)], "ids": z["ids"][:t],
+                    "loops": z["loops"][:t], "best_score": z["best_score"][:t], "backbone": str(z["backbone"])}
+    from neoslam_stream import NeoSLAM, load_config
+    from neoslam_stream.sources.synthetic import SyntheticWorldSource
+
+    cfg = load_config("default")
+    src = SyntheticWorldSource(**dict(cfg.source.params or {}), **({"frames": frames} if frames else {}))
+    slam = NeoSLAM(cfg, backend=False)
+    feats, bits, cells, ids, loops, scores = [], [], [], [], [], []
+    backbone = ""
+    for fr in src:
+        res = slam.step(fr.image, stamp=fr.stamp, frame=fr.frame)
+        got = dict(res.outputs)
+        feats.append(np.asarray(got["visual_features"]["features"], np.float32))
+        backbone = str(got["visual_features"]["backbone"])
+        bits.append(np.asarray(got["bin_features"]["bits"], np.uint16))
+        cells.append(np.asarray(got["sdr"]["cells"], np.uint32))
+        ids.append(int(res.template["id"]))
+        loops.append(bool(res.template["is_loop_closure"]))
+        scores.append(int(res.template["best_score"]))
+    slam.finish()
+    out = {"features": np.stack(feats), "bits": bits, "cells": cells, "ids": np.asarray(ids),
+           "loops": np.asarray(loops), "best_score": np.asarray(scores), "backbone": backbone}
+    if cache is not None:
+        np.savez(cache, n=len(ids), features=out["features"], bits=np.concatenate(bits),
+                 bits_off=np.concatenate([[0], np.cumsum([len(b) for b in bits])]),
+                 cells=np.concatenate(cells), cells_off=np.concatenate([[0], np.cumsum([len(c) for c in cells])]),
+                 ids=out["ids"], loops=out["loops"], best_score=out["best_score"], backbone=backbone)
+    return out
+
+
+def _bit_agreement(a: list[np.ndarray], b: list[np.ndarray]) -> dict[str, float]:
+    """Frames whose 512 bits are all identical, and the mean fraction of identical set bits."""
+    same_frames = sum(1 for x, y in zip(a, b, strict=True) if np.array_equal(x, y))
+    shared = [np.intersect1d(x, y).size / max(x.size, 1) for x, y in zip(a, b, strict=True)]
+    return {"frames": len(a), "frames_identical": same_frames, "fraction_frames_identical": same_frames / len(a),
+            "mean_fraction_bits_identical": float(np.mean(shared)), "min_fraction_bits_identical": float(np.min(shared))}
+
+
+def float16_synthetic(rec: dict[str, Any]) -> dict[str, Any]:
+    """Replay the recorded A features through B (float32 and float16 storage), C and D as
+    configured by ``default``; compare bits and templates with the recorded run."""
+    from neoslam_stream import NeoSLAM, load_config
+    from neoslam_stream.runtime.messages import Message
+
+    out: dict[str, Any] = {}
+    runs = {}
+    for dtype in ("float32", "float16"):
+        cfg = load_config("default", overrides={"projector": {"matrix_dtype": dtype}})
+        slam = NeoSLAM(cfg, backend=False)
+        bits, ids, loops = [], [], []
+        for i, f in enumerate(rec["features"]):
+            produced = dict((t, m.data) for t, m in slam.chain.push(
+                "visual_features", Message("visual_features", i, float(i), {"features": f, "backbone": rec["backbone"]})))
+            bits.append(np.asarray(produced["bin_features"]["bits"]))
+            ids.append(int(produced["visual_template"]["id"]))
+            loops.append(bool(produced["visual_template"]["is_loop_closure"]))
+        slam.finish()
+        runs[dtype] = (bits, np.asarray(ids), np.asarray(loops))
+    b32, i32, l32 = runs["float32"]
+    b16, i16, l16 = runs["float16"]
+    out["replay_float32_equals_recording"] = bool(np.array_equal(i32, rec["ids"]))
+    out["bits"] = _bit_agreement(b32, b16)
+    out["templates_identical"] = bool(np.array_equal(i32, i16))
+    out["frames_with_same_template"] = int(np.sum(i32 == i16))
+    out["loop_closures_float32"] = int(l32.sum())
+    out["loop_closures_float16"] = int(l16.sum())
+    out["loop_closure_frames_identical"] = bool(np.array_equal(l32, l16))
+    out["templates_float32"], out["templates_float16"] = int(i32.max() + 1), int(i16.max() + 1)
+    out["backbone"] = rec["backbone"]
+    out["frames"] = len(i32)
+    return out
+
+
+def float16_nordland(step: int = 4) -> dict[str, Any]:
+    """The main Nordland configuration of bench/frontend.py (EfficientNet-Lite0, centred B with
+    window 100, pass-through C, calibrated theta_sigma) with B's matrix in float32 and in float16."""
+    from neoslam_stream.algorithms.features import VisualFeatureExtractor
+    from neoslam_stream.algorithms.projector import BinaryProjector
+    from neoslam_stream.algorithms.spatial_view import SpatialViewCells
+    from neoslam_stream.datasets.nordland import (
+        DATA,
+        calibrate_theta_sigma,
+        evaluate,
+        load_frames,
+        passthrough_neocortex,
+    )
+
+    if not DATA.is_dir():
+        return {"skipped": f"{DATA} not found"}
+    summer, winter, ids = load_frames(step, None, 10.0)
+    frames = summer + winter
+    n = len(summer)
+    fa = VisualFeatureExtractor(backbone="efficientnet_lite0", threads=1)
+    feats = np.concatenate([fa.extract_batch(frames[k:k + 8]) for k in range(0, len(frames), 8)])
+    res: dict[str, Any] = {"places": n, "frames": len(frames), "step": step, "backbone": fa.backbone}
+    bits = {}
+    for dtype in ("float32", "float16"):
+        pb = BinaryProjector(input_dim=fa.output_dim, matrix_dtype=dtype, centre_window=100)
+        bits[dtype] = [b for k in range(0, len(feats), 8) for b in pb.bits_batch(feats[k:k + 8])]
+    res["bits"] = _bit_agreement(bits["float32"], bits["float16"])
+    tids = {}
+    for dtype, b in bits.items():
+        theta = calibrate_theta_sigma(b[:n], ids, 150)
+        d = SpatialViewCells(theta_alpha=384, theta_rho=3, exclude_recent_intervals=3, theta_sigma=theta)
+        out = [d.compute(passthrough_neocortex(x)) for x in b]
+        t = [int(m["id"]) for m in out]
+        lo = [bool(m["is_loop_closure"]) for m in out]
+        ev = evaluate(t, lo, ids, n, 150)
+        res[dtype] = {"theta_sigma_calibrated": theta, "templates": d.n_templates, **ev}
+        tids[dtype] = (np.asarray(t), np.asarray(lo))
+    res["templates_identical"] = bool(np.array_equal(tids["float32"][0], tids["float16"][0]))
+    res["loop_closure_frames_identical"] = bool(np.array_equal(tids["float32"][1], tids["float16"][1]))
+    return res
+
+
+if __name__ == "__main__":
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    r = record_synthetic()
+    print(json.dumps({"synthetic": float16_synthetic(r), "nordland": float16_nordland()}, indent=2))

@@ -44,6 +44,7 @@ from pyroaring import BitMap
 
 from ._config import make_config
 from .errors import InvalidInput
+from .sequence import SequenceConfig, SequenceFilter
 
 
 class SpatialViewConfig(BaseModel):
@@ -54,6 +55,9 @@ class SpatialViewConfig(BaseModel):
     theta_sigma: int = Field(470, ge=0)
     exclude_recent_intervals: int = Field(3, ge=0)
     sdr_size: int = Field(65536, ge=1)
+    #: issue #14: accept a closure only after a run of consistent candidates (algorithms.sequence;
+    #: the default ``length: 0`` keeps the paper's rule)
+    sequence: SequenceConfig = Field(default_factory=SequenceConfig)
 
 
 BLOCK = 128  # entries per posting block (512 B: few jumps per list, little slack)
@@ -161,6 +165,7 @@ class SpatialViewCells:
         self.current_template = -1
         self.t = 0
         self._scores = np.zeros(1024, dtype=np.int32)
+        self.sequence = SequenceFilter(cfg.sequence)
 
     def _init_storage(self, blocks: int) -> None:
         # compacted part: CSR offsets per bit and the postings
@@ -286,6 +291,8 @@ class SpatialViewCells:
             best = int(np.argmax(scores[:limit]))  # first maximum = lowest index
             best_score = int(scores[best])
         loop = best >= 0 and best_score > self.theta_sigma
+        if self.sequence.enabled:  # a candidate is a closure only within a consistent sequence
+            loop = self.sequence.check(self.t, self.interval_start[best] if loop else -1)
         if loop:
             template = self.interval_template[best]
         elif new_interval:
@@ -317,7 +324,8 @@ class SpatialViewCells:
                 "unions": [np.asarray(u.to_array(), dtype=np.uint32) for u in self.unions],
                 "start": np.asarray(self.interval_start, np.int64), "end": np.asarray(self.interval_end, np.int64),
                 "template": np.asarray(self.interval_template, np.int64), "n_templates": self.n_templates,
-                "current_template": self.current_template, "t": self.t}
+                "current_template": self.current_template, "t": self.t,
+                "sequence": self.sequence.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         (self.theta_alpha, self.theta_rho, self.theta_sigma, self.omega, self.sdr_size) = state["params"]
@@ -334,3 +342,4 @@ class SpatialViewCells:
         self.n_templates = int(state["n_templates"])
         self.current_template = int(state["current_template"])
         self.t = int(state["t"])
+        self.sequence.load_state_dict(state.get("sequence", {}))

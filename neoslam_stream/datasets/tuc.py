@@ -24,6 +24,22 @@ TUC_SETTINGS = dict(pc=dict(pc_dim_xy=30, pc_cell_x_size=1.0, exp_delta_pc_thres
                     em=dict(exp_loops=20, exp_initial_em_deg=0), threshold=0.6, min_gap_s=30.0)
 
 
+def load_ground_truth(path=None) -> np.ndarray:
+    """(n, 3) rows (t, x, y) of the ``point2`` records only.
+
+    The GT file interleaves ``point2 t x y ...`` (positions, metres) with ``angle t heading 0``
+    records; reading every row as a position mixed (t, heading, 0) into the trajectory, so the
+    figures were not trajectory errors (issue #14). Rows are sorted by time.
+    """
+    rows = []
+    for line in open(path or DATA / "Corridor_GT.txt"):
+        p = line.split()
+        if p and p[0] == "point2":
+            rows.append((float(p[1]), float(p[2]), float(p[3])))
+    gt = np.array(rows, dtype=np.float64)
+    return gt[np.argsort(gt[:, 0], kind="stable")]
+
+
 def load(limit_s: float | None = None):
     odom, loops = [], []
     for line in open(DATA / "Corridor_Input.txt"):
@@ -34,7 +50,7 @@ def load(limit_s: float | None = None):
             odom.append((float(p[1]), float(p[2]), float(p[4])))
         elif p[0] == "loop":
             loops.append((float(p[1]), float(p[2]), float(p[3])))
-    gt = np.array([[float(v) for v in line.split()[1:4]] for line in open(DATA / "Corridor_GT.txt") if line.strip()])
+    gt = load_ground_truth()
     odom = np.array(odom)
     loops = np.array(loops)
     if limit_s is not None:

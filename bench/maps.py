@@ -138,6 +138,68 @@ def run_synthetic(cfg: Any, data: dict[str, np.ndarray], run_dir: Path) -> dict[
             "d_and_backend_s": round(secs, 1)}
 
 
+# ---------------------------------------------------------------- Nordland summer -> winter
+
+NORDLAND = dict(step=8, min_std=10.0, tolerance=150)  # tests/test_frontend_nordland.py's protocol
+
+
+def nordland_inputs(backbone: str = "efficientnet_lite0") -> dict[str, Any]:
+    """A's features of the summer then winter frames (8 at a time, as the nodes batch), cached."""
+    from neoslam_stream.algorithms.features import VisualFeatureExtractor
+    from neoslam_stream.datasets.nordland import load_frames
+
+    path = CACHE / f"nordland_{_key([backbone, NORDLAND])}.npz"
+    if path.exists():
+        z = np.load(path)
+        return {"features": z["features"], "ids": z["ids"].tolist(), "n": int(z["n"])}
+    CACHE.mkdir(parents=True, exist_ok=True)
+    summer, winter, ids = load_frames(NORDLAND["step"], None, NORDLAND["min_std"])
+    fa = VisualFeatureExtractor(backbone=backbone, seed=42, threads=1)
+    frames = summer + winter
+    feats = np.concatenate([fa.extract_batch(frames[k:k + 8]) for k in range(0, len(frames), 8)])
+    np.savez(path, features=feats.astype(np.float32), ids=np.array(ids), n=len(summer))
+    return {"features": feats, "ids": ids, "n": len(summer)}
+
+
+def run_nordland(proj: dict, svc_list: list[dict], data: dict[str, Any]) -> list[dict]:
+    """B (``proj`` on top of the defaults), the real C and D (each of ``svc_list``; theta_sigma None:
+    calibrated on summer as in the Nordland test) on the cached features; precision / recall."""
+    from neoslam_stream.algorithms.neocortex import Neocortex
+    from neoslam_stream.algorithms.projector import BinaryProjector
+    from neoslam_stream.algorithms.spatial_view import SpatialViewCells
+    from neoslam_stream.datasets.nordland import calibrate_theta_sigma, evaluate
+
+    feats, ids, n = data["features"], data["ids"], data["n"]
+    path = CACHE / f"nordland_sdr_{_key([proj, feats.shape])}.npz"
+    if path.exists():
+        z = np.load(path)
+        bits = np.split(z["bits"], z["bptr"][1:-1])
+        sdr = np.split(z["cells"], z["cptr"][1:-1])
+    else:
+        pb = BinaryProjector(input_dim=feats.shape[1], **{"projection": "gaussian", "seed": 42, **proj})
+        nc = Neocortex()
+        bits, sdr = [], []
+        for k in range(0, len(feats), 8):
+            for b in pb.bits_batch(feats[k:k + 8]):
+                bits.append(np.asarray(b))
+                sdr.append(np.asarray(nc.compute(b)))
+        np.savez(path, bits=np.concatenate(bits), bptr=np.cumsum([0] + [len(b) for b in bits]),
+                 cells=np.concatenate(sdr), cptr=np.cumsum([0] + [len(c) for c in sdr]))
+    calibrated = calibrate_theta_sigma(bits[:n], ids, NORDLAND["tolerance"])
+    out = []
+    for svc in svc_list:
+        svc = dict(svc)
+        if svc.get("theta_sigma") is None:
+            svc["theta_sigma"] = calibrated
+        d = SpatialViewCells(**svc)
+        res = [d.compute(c.astype(np.uint32)) for c in sdr]
+        r = evaluate([int(m["id"]) for m in res], [bool(m["is_loop_closure"]) for m in res], ids, n,
+                     NORDLAND["tolerance"])
+        r.update({"svc": svc, "proj": proj, "places": n})
+        out.append(r)
+    return out
+
+
 def merge(base: dict, over: dict) -> dict:
     out = copy.deepcopy(base)
     for k, v in over.items():
@@ -202,6 +264,19 @@ PAPER_FALLBACK: dict = {
 #: lever name -> config overrides on the paper profile (each alone; "default" = all kept)
 LEVERS: dict[str, dict] = {
     "paper": {},
+    "sequence_3": {"spatial_view": {"sequence": {"length": 3, "max_step": 2.0, "slack": 4}}},
+    "sequence_5": {"spatial_view": {"sequence": {"length": 5, "max_step": 2.0, "slack": 4}}},
+    "sequence_10": {"spatial_view": {"sequence": {"length": 10, "max_step": 2.0, "slack": 4}}},
+    "robust_0.5": {"experience_map": {"exp_robust_m": 0.5}},
+    "robust_1": {"experience_map": {"exp_robust_m": 1.0}},
+    "robust_2": {"experience_map": {"exp_robust_m": 2.0}},
+    "pc_inject_0.3": {"pose_cells": {"pc_vt_inject_energy": 0.3}},
+    "pc_torus_15m": {"pose_cells": {"pc_dim_xy": 30, "pc_cell_x_size": 0.5}},
+    "centre_100": {"projector": {"centre_window": 100}},
+    "gate_1_0.1": {"pose_cells": {"odometry_gate": {"radius_m": 1.0, "drift": 0.1}}},
+    "gate_1_0.2": {"pose_cells": {"odometry_gate": {"radius_m": 1.0, "drift": 0.2}}},
+    "seq5_gate_1_0.1": {"spatial_view": {"sequence": {"length": 5, "max_step": 2.0, "slack": 4}},
+                        "pose_cells": {"odometry_gate": {"radius_m": 1.0, "drift": 0.1}}},
 }
 
 

@@ -5,6 +5,7 @@ relaxation (``exp_robust_m``)."""
 import math
 
 import numpy as np
+import pytest
 
 from neoslam_stream.algorithms.ratslam.experience_map import ExperienceMap
 from neoslam_stream.algorithms.ratslam.pose_cells import CREATE_EDGE, CREATE_NODE
@@ -124,3 +125,32 @@ def test_robust_relaxation_limits_the_pull_of_one_wrong_link():
     # links keeps the map within 10 % of its true 10 m; the plain rule folds the chain up
     assert robust > 9.0
     assert plain < 0.5 * robust
+
+
+# ---------------------------------------------------------------- odometry gate
+
+def test_odometry_gate_refuses_a_place_odometry_cannot_explain_and_accepts_a_real_return():
+    from neoslam_stream.algorithms.ratslam.odometry_gate import OdometryGate
+
+    g = OdometryGate(radius_m=1.0, drift=0.05)
+    assert g.check(0) is True  # a new template: its place (0, 0) is recorded
+    for _ in range(10):  # 10 m along +x
+        g.on_odo(1.0, 0.0, 1.0)
+    assert g.check(1) is True  # new template at (10, 0)
+    # template 0 again, 10 m from the estimate; allowed 1 + 0.05 * 10 = 1.5 m: refused
+    assert g.check(0) is False and g.refused == 1
+    g.on_odo(0.0, math.pi, 1.0)  # turn round and drive 9.5 m back: at (0.5, 0)
+    for _ in range(19):
+        g.on_odo(0.5, 0.0, 1.0)
+    assert g.allowed_m() == pytest.approx(1.0 + 0.05 * 19.5)
+    assert g.check(0) is True  # 0.5 m from its place: accepted, the estimate moves there
+    assert (g.x, g.y, g.path_m) == pytest.approx((0.0, 0.0, 0.0))
+
+
+def test_odometry_gate_off_accepts_everything():
+    from neoslam_stream.algorithms.ratslam.odometry_gate import OdometryGate
+
+    g = OdometryGate()
+    g.check(0)
+    g.on_odo(100.0, 0.0, 1.0)
+    assert g.check(1) and g.check(0)

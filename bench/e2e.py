@@ -1,9 +1,16 @@
-"""End-to-end benchmark: NeoSLAM and RatSLAM on the full synthetic route -> bench/results/e2e.json.
+"""End-to-end benchmark: NeoSLAM (default and paper profiles) and RatSLAM on the full synthetic
+route -> bench/results/e2e.json.
 
 Keys: neoslam_mean_m, neoslam_max_m, ratslam_mean_m, ratslam_max_m (trajectory APE after SE(2)
 alignment), odometry_mean_m, frames, fps_lossless (NeoSLAM, pipeline topology, lossless), plus
-the paper's per-node metric, loop closures and per-stage tau. Also writes e2e_map.png.
-Run: ``.venv/bin/python bench/e2e.py [--frames N]``.
+the paper's per-node metric, loop closures and per-stage tau. Issue #14 adds neoslam_precision,
+neoslam_recall, ratslam_precision, ratslam_recall (a closure is correct when the matched
+template's first frame lies within ``closure_radius_m`` = 1 m of the frame's true position),
+neoslam_ape_vs_odometry, and the same figures of the paper profile under ``paper_neoslam_*`` (the
+settings before issue #14: ``configs/paper.yaml`` when it ships). Also writes e2e_map.png.
+``--inprocess``: the same nodes in this process (the in-process API's chain: no zenoh, same
+templates and poses as a lossless run), for a loaded machine; e2e.json then says so.
+Run: ``.venv/bin/python bench/e2e.py [--frames N] [--inprocess]``.
 """
 
 from __future__ import annotations
@@ -12,48 +19,107 @@ import argparse
 import json
 import shutil
 import sys
+import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from neoslam_stream.config import load_config  # noqa: E402
+from neoslam_stream.config import ConfigError, load_config  # noqa: E402
 from neoslam_stream.evaluation import evaluate_run  # noqa: E402
 from neoslam_stream.launch import run  # noqa: E402
 
 
+def paper_config(overrides: dict):
+    """The paper profile (configs/paper.yaml), or the settings the default had before issue #14."""
+    try:
+        return load_config("paper", overrides)
+    except ConfigError:
+        from maps import PAPER_FALLBACK, merge
+
+        return load_config(None, merge(PAPER_FALLBACK, overrides))
+
+
+def run_inprocess(cfg, run_dir: Path) -> dict:
+    """Every frame of the config's source through the in-process chain; the run folder as
+    ``neoslam run`` writes it (templates.csv, trajectory.tum, map.json, groundtruth/odometry.tum)."""
+    import math
+
+    import numpy as np
+
+    from neoslam_stream.api import NeoSLAM, RatSLAM
+    from neoslam_stream.sources.synthetic import SyntheticWorldSource
+    from neoslam_stream.tum import write_tum
+
+    run_dir.mkdir(parents=True, exist_ok=True)
+    slam = (NeoSLAM if cfg.run.pipeline == "neoslam" else RatSLAM)(cfg, run_dir=run_dir)
+    gt, odo = [], []
+    ox = oy = oth = 0.0
+    t0 = time.perf_counter()
+    for f in SyntheticWorldSource(**cfg.source.params):
+        slam.step(f.image, odometry=f.odom, stamp=f.stamp, frame=f.frame)
+        gt.append((f.stamp, *f.groundtruth))
+        v, w, dt = f.odom
+        oth += w * dt
+        ox += v * dt * math.cos(oth)
+        oy += v * dt * math.sin(oth)
+        odo.append((f.stamp, ox, oy, oth))
+    slam.finish()
+    secs = time.perf_counter() - t0
+    write_tum(run_dir / "groundtruth.tum", np.array(gt))
+    write_tum(run_dir / "odometry.tum", np.array(odo))
+    (run_dir / "report.json").write_text(json.dumps({"source": {"kind": "synthetic"}}))
+    info = slam.info()
+    return {"frames_out": len(gt), "f_out": len(gt) / secs, "in_process": True,
+            "backbone": info.get("A", {}).get("backbone")}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--frames", type=int, default=None, help="default: the whole route (2472 frames)")
+    ap.add_argument("--frames", type=int, default=None, help="default: the whole route (2445 frames)")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results"))
+    ap.add_argument("--inprocess", action="store_true", help="run the nodes in this process (no zenoh)")
     args = ap.parse_args()
     out = Path(args.out)
     work = out / "e2e_runs"
-    res: dict = {}
-    for pipeline in ("neoslam", "ratslam"):
+    res: dict = {"closure_radius_m": 1.0, "in_process": bool(args.inprocess)}
+    for name, pipeline, profile in (("neoslam", "neoslam", "default"), ("ratslam", "ratslam", "default"),
+                                    ("paper_neoslam", "neoslam", "paper")):
         params = {"seed": 0}
         if args.frames:
             params["frames"] = args.frames
-        cfg = load_config("default", {"run": {"pipeline": pipeline, "live": False},
-                                      "source": {"kind": "synthetic", "params": params}})
-        r = run(cfg, work / pipeline)
-        ev = evaluate_run(work / pipeline)
-        res[pipeline] = {"report": {k: r.report[k] for k in ("frames_in", "frames_out", "f_out", "loss",
-                                                             "f_pipeline_predicted", "bottleneck")},
-                         "tau_p50_ms": {s: v["tau_p50_ms"] for s, v in r.report["stages"].items()},
-                         "evaluation": ev}
-        res[f"{pipeline}_mean_m"] = ev["trajectory_ape"]["mean_m"]
-        res[f"{pipeline}_max_m"] = ev["trajectory_ape"]["max_m"]
-        if pipeline == "neoslam":
+        over = {"run": {"pipeline": pipeline, "live": False}, "source": {"kind": "synthetic", "params": params}}
+        cfg = paper_config(over) if profile == "paper" else load_config("default", over)
+        if args.inprocess:
+            report = run_inprocess(cfg, work / name)
+            res[name] = {"report": report}
+        else:
+            r = run(cfg, work / name)
+            report = {"frames_out": r.report["frames_out"], "f_out": r.report["f_out"],
+                      "backbone": r.report["stages"].get("A", {}).get("info", {}).get("backbone")}
+            res[name] = {"report": {k: r.report[k] for k in ("frames_in", "frames_out", "f_out", "loss",
+                                                                "f_pipeline_predicted", "bottleneck")},
+                         "tau_p50_ms": {s: v["tau_p50_ms"] for s, v in r.report["stages"].items()}}
+        ev = evaluate_run(work / name, radius=res["closure_radius_m"])
+        res[name]["evaluation"] = ev
+        res[f"{name}_mean_m"] = ev["trajectory_ape"]["mean_m"]
+        res[f"{name}_max_m"] = ev["trajectory_ape"]["max_m"]
+        res[f"{name}_precision"] = ev["loop_closures"]["precision"]
+        res[f"{name}_recall"] = ev["loop_closures"]["recall"]
+        res[f"{name}_closures"] = ev["loop_closures"]["closures"]
+        if name == "neoslam":
             res["odometry_mean_m"] = ev["odometry_ape"]["mean_m"]
             res["odometry_max_m"] = ev["odometry_ape"]["max_m"]
-            res["frames"] = r.report["frames_out"]
-            res["fps_lossless"] = r.report["f_out"]
-            res["backbone"] = r.report["stages"]["A"]["info"].get("backbone")
-            shutil.copy(work / pipeline / "map.png", out / "e2e_map.png")
-        print(pipeline, res[f"{pipeline}_mean_m"], res[f"{pipeline}_max_m"], flush=True)
+            res["frames"] = report["frames_out"]
+            res["fps_lossless"] = report["f_out"]
+            res["backbone"] = report["backbone"]
+            shutil.copy(work / name / "map.png", out / "e2e_map.png")
+        print(name, res[f"{name}_mean_m"], res[f"{name}_precision"], flush=True)
+    res["neoslam_ape_vs_odometry"] = res["neoslam_mean_m"] / res["odometry_mean_m"]
+    res["paper_neoslam_ape_vs_odometry"] = res["paper_neoslam_mean_m"] / res["odometry_mean_m"]
     (out / "e2e.json").write_text(json.dumps(res, indent=2))
     print(json.dumps({k: v for k, v in res.items() if not isinstance(v, dict)}, indent=2))
 
 
 if __name__ == "__main__":
+    sys.path.insert(0, str(Path(__file__).parent))
     main()

@@ -19,3 +19,24 @@ def test_experience_map_beats_odometry_on_real_drift():
     # the same with the NeoSLAM authors' alignment (first points subtracted, no rotation fitted)
     odo, est = first_point_error(r["odo"][:, 1:], r["gt"]), first_point_error(r["est"][:, 1:], r["gt"])
     assert est.mean() < 0.7 * odo.mean(), (est.mean(), odo.mean())
+
+
+def test_ground_truth_reader_keeps_position_rows_only():
+    """The GT file interleaves ``point2 t x y`` (positions) with ``angle t heading 0`` rows; only
+    positions may be read (issue #14). Positions of a drive along a ~167 m corridor spread over
+    ~100 m, move at most walking pace between 5 Hz rows, and their path length matches the
+    odometry's (sum of |vx| dt) to within 10 %; heading rows would add jumps of ~|x| metres and
+    a second, interleaved time series."""
+    import numpy as np
+
+    gt = tuc.load_ground_truth()
+    n_point = sum(1 for line in open(tuc.DATA / "Corridor_GT.txt") if line.startswith("point2"))
+    assert len(gt) == n_point
+    assert np.all(np.diff(gt[:, 0]) > 0)  # one row per stamp: no interleaved angle series
+    assert np.ptp(gt[:, 1]) > 100.0
+    odom, _, _ = tuc.load()
+    odo_len = float(np.sum(np.abs(odom[1:, 1]) * np.diff(odom[:, 0])))
+    gt_len = float(np.sum(np.hypot(np.diff(gt[:, 1]), np.diff(gt[:, 2]))))
+    assert 500.0 < odo_len < 2500.0
+    assert np.hypot(np.diff(gt[:, 1]), np.diff(gt[:, 2])).max() < 0.5  # 0.2 s apart: < 2.5 m/s
+    assert abs(gt_len - odo_len) < 0.1 * odo_len, (gt_len, odo_len)

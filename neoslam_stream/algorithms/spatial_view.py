@@ -58,6 +58,7 @@ from pyroaring import BitMap
 
 from ._config import make_config
 from .errors import InvalidInput
+from .sequence import SequenceConfig, SequenceFilter
 
 
 class SpatialViewConfig(BaseModel):
@@ -68,6 +69,9 @@ class SpatialViewConfig(BaseModel):
     theta_sigma: int = Field(470, ge=0)
     exclude_recent_intervals: int = Field(3, ge=0)
     sdr_size: int = Field(65536, ge=1)
+    #: issue #14: accept a closure only after a run of consistent candidates (algorithms.sequence;
+    #: the default ``length: 0`` keeps the paper's rule)
+    sequence: SequenceConfig = Field(default_factory=SequenceConfig)
 
     @field_validator("exclude_recent_intervals")
     @classmethod
@@ -343,6 +347,7 @@ class SpatialViewCells:
         #: postings read and unions verified by the last frame's bounded search (bench figures)
         self.last_search = (0, 0)
         self._hints = np.full(6, -1, dtype=np.int64)
+        self.sequence = SequenceFilter(cfg.sequence)
 
     def _init_storage(self, blocks: int) -> None:
         # compacted part: CSR offsets per bit and the postings
@@ -501,6 +506,8 @@ class SpatialViewCells:
                 best, best_score, second, second_score = self._top2_bounded(y, limit)
         self.runner_up = (second, second_score)
         loop = best >= 0 and best_score > self.theta_sigma
+        if self.sequence.enabled:  # a candidate is a closure only within a consistent sequence
+            loop = self.sequence.check(self.t, self.interval_start[best] if loop else -1)
         if loop:
             template = self.interval_template[best]
         elif new_interval:
@@ -569,7 +576,8 @@ class SpatialViewCells:
                 "unions": [np.asarray(u.to_array(), dtype=np.uint32) for u in self.unions],
                 "start": np.asarray(self.interval_start, np.int64), "end": np.asarray(self.interval_end, np.int64),
                 "template": np.asarray(self.interval_template, np.int64), "n_templates": self.n_templates,
-                "current_template": self.current_template, "t": self.t}
+                "current_template": self.current_template, "t": self.t,
+                "sequence": self.sequence.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         (self.theta_alpha, self.theta_rho, self.theta_sigma, self.omega, self.sdr_size) = state["params"]
@@ -587,3 +595,4 @@ class SpatialViewCells:
         self.n_templates = int(state["n_templates"])
         self.current_template = int(state["current_template"])
         self.t = int(state["t"])
+        self.sequence.load_state_dict(state.get("sequence", {}))

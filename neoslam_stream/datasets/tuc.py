@@ -24,6 +24,22 @@ TUC_SETTINGS = dict(pc=dict(pc_dim_xy=30, pc_cell_x_size=1.0, exp_delta_pc_thres
                     em=dict(exp_loops=20, exp_initial_em_deg=0), threshold=0.6, min_gap_s=30.0)
 
 
+def load_ground_truth(path=None) -> np.ndarray:
+    """(n, 3) rows (t, x, y) of the ``point2`` records only.
+
+    The GT file interleaves ``point2 t x y ...`` (positions, metres) with ``angle t heading 0``
+    records; reading every row as a position mixed (t, heading, 0) into the trajectory, so the
+    figures were not trajectory errors (issue #14). Rows are sorted by time.
+    """
+    rows = []
+    for line in open(path or DATA / "Corridor_GT.txt"):
+        p = line.split()
+        if p and p[0] == "point2":
+            rows.append((float(p[1]), float(p[2]), float(p[3])))
+    gt = np.array(rows, dtype=np.float64)
+    return gt[np.argsort(gt[:, 0], kind="stable")]
+
+
 def load(limit_s: float | None = None):
     odom, loops = [], []
     for line in open(DATA / "Corridor_Input.txt"):
@@ -34,7 +50,7 @@ def load(limit_s: float | None = None):
             odom.append((float(p[1]), float(p[2]), float(p[4])))
         elif p[0] == "loop":
             loops.append((float(p[1]), float(p[2]), float(p[3])))
-    gt = np.array([[float(v) for v in line.split()[1:4]] for line in open(DATA / "Corridor_GT.txt") if line.strip()])
+    gt = load_ground_truth()
     odom = np.array(odom)
     loops = np.array(loops)
     if limit_s is not None:
@@ -44,8 +60,14 @@ def load(limit_s: float | None = None):
     return odom, loops, gt
 
 
-def templates_from_loops(loops: np.ndarray, threshold: float, min_gap_s: float) -> dict[float, int]:
-    """time -> template id, in time order."""
+def templates_from_loops(loops: np.ndarray, threshold: float, min_gap_s: float,
+                         sequence: dict | None = None) -> dict[float, int]:
+    """time -> template id, in time order. ``sequence``: the parameters of a
+    :class:`~neoslam_stream.algorithms.sequence.SequenceFilter` over frame indices (a recognised
+    frame must continue a run of consistent recognitions), as stage D's ``sequence`` setting."""
+    from ..algorithms.sequence import SequenceFilter
+
+    seq = SequenceFilter(**(sequence or {}))
     frames = np.unique(np.concatenate([loops[:, 0], loops[:, 1]]))
     best: dict[float, tuple[float, float]] = {}
     for t1, t2, s in loops:
@@ -53,9 +75,11 @@ def templates_from_loops(loops: np.ndarray, threshold: float, min_gap_s: float) 
         if later - earlier >= min_gap_s and s >= threshold and s > best.get(later, (0, -1))[1]:
             best[later] = (earlier, s)
     ids: dict[float, int] = {}
+    pos = {t: i for i, t in enumerate(frames)}
     n = 0
-    for t in frames:
-        if t in best and best[t][0] in ids:
+    for i, t in enumerate(frames):
+        ref = pos[best[t][0]] if t in best and best[t][0] in ids else -1
+        if seq.check(i, ref):
             ids[t] = ids[best[t][0]]
         else:
             ids[t] = n
@@ -79,15 +103,20 @@ def align_rigid_2d(est: np.ndarray, ref: np.ndarray) -> np.ndarray:
 
 
 def run(pc_params: dict, em_params: dict, threshold: float = 0.8, min_gap_s: float = 60.0,
-        limit_s: float | None = None) -> dict:
+        limit_s: float | None = None, sequence: dict | None = None) -> dict:
+    """The corridor run through pose cells + experience map. ``pc_params`` may hold an
+    ``odometry_gate`` (OdometryGate's parameters: recognitions odometry cannot explain do not
+    reach the pose cells, as in the pose-cell node); ``sequence``: see templates_from_loops."""
     from ..algorithms.ratslam.experience_map import ExperienceMap
+    from ..algorithms.ratslam.odometry_gate import OdometryGate
     from ..algorithms.ratslam.pose_cells import PoseCellNetwork
 
     odom, loops, gt = load(limit_s)
-    ids = templates_from_loops(loops, threshold, min_gap_s)
+    ids = templates_from_loops(loops, threshold, min_gap_s, sequence)
     frame_times = np.array(sorted(ids))
     pc = PoseCellNetwork(**pc_params)
     em = ExperienceMap(**em_params)
+    gate = OdometryGate(pc.cfg.odometry_gate)
     fi = 0
     est, dr = [], []
     x = y = 0.0
@@ -99,10 +128,12 @@ def run(pc_params: dict, em_params: dict, threshold: float = 0.8, min_gap_s: flo
         prev_t = t
         while fi < len(frame_times) and frame_times[fi] <= t:
             vt = ids[frame_times[fi]]
-            recognised += int(vt in pc.templates)
-            pc.on_view_template(vt, 0.0)
+            if gate.check(vt):
+                recognised += int(vt in pc.templates)
+                pc.on_view_template(vt, 0.0)
             fi += 1
         pc.on_odo(vx, wz, dt)
+        gate.on_odo(vx, wz, dt)
         em.on_odo(vx, wz, dt)
         a, s, d, rr = pc.get_action()
         if a:
@@ -119,7 +150,7 @@ def run(pc_params: dict, em_params: dict, threshold: float = 0.8, min_gap_s: flo
     err_map = np.linalg.norm(align_rigid_2d(est[:, 1:], ref) - ref, axis=1)
     err_odo = np.linalg.norm(align_rigid_2d(dr[:, 1:], ref) - ref, axis=1)
     return {"steps": len(odom), "frames": len(frame_times), "templates": len(set(ids.values())),
-            "recognised_frames": recognised, "experiences": em.n_experiences, "links": len(em.links),
+            "recognised_frames": recognised, "gate_refused": gate.refused, "experiences": em.n_experiences, "links": len(em.links),
             "map_mean_m": float(err_map.mean()), "map_max_m": float(err_map.max()),
             "odometry_mean_m": float(err_odo.mean()), "odometry_max_m": float(err_odo.max()),
             "threshold": threshold, "min_gap_s": min_gap_s, "est": est, "odo": dr, "gt": ref}

@@ -22,6 +22,7 @@ import numpy as np
 from ..algorithms.errors import InvalidInput
 from ..algorithms.ratslam.experience_map import ExperienceMap, ExperienceMapConfig
 from ..algorithms.ratslam.local_view import LocalViewCells, LocalViewConfig
+from ..algorithms.ratslam.odometry_gate import OdometryGate
 from ..algorithms.ratslam.pose_cells import PoseCellConfig, PoseCellNetwork
 from ..algorithms.ratslam.visual_odometry import VisualOdometry, VisualOdometryConfig
 from ..runtime.messages import Message, decode, encode
@@ -43,6 +44,7 @@ class PoseCellsNode(Node):
     def __init__(self, max_odom_lag: int = 64, **params: Any) -> None:
         super().__init__()
         self.pc = PoseCellNetwork(PoseCellConfig(**params))
+        self.gate = OdometryGate(self.pc.cfg.odometry_gate)
         self.max_odom_lag = max_odom_lag
         self.pending: OrderedDict[int, Message] = OrderedDict()  # odometry by frame
         self.templates_waiting: OrderedDict[int, Message] = OrderedDict()
@@ -63,6 +65,8 @@ class PoseCellsNode(Node):
         if not (math.isfinite(dt) and dt >= 0):
             raise StageInputError(f"odometry dt {dt} is not a finite non-negative number")
         self.pc.on_odo(vtrans, vrot, dt)
+        if self.gate.enabled:
+            self.gate.on_odo(vtrans, vrot, dt)
         action, src, dst, rr = self.pc.get_action()
         self.actions[action] += 1
         data = {"action": action, "src_id": src, "dst_id": dst, "relative_rad": rr,
@@ -76,7 +80,8 @@ class PoseCellsNode(Node):
         out: Output = []
         while self.pending and next(iter(self.pending)) < msg.frame:
             out += self._odo(self.pending.pop(next(iter(self.pending))))
-        self.pc.on_view_template(int(msg["id"]), float(msg.data.get("relative_rad", 0.0)))
+        if not self.gate.enabled or self.gate.check(int(msg["id"])):
+            self.pc.on_view_template(int(msg["id"]), float(msg.data.get("relative_rad", 0.0)))
         self.last_template_frame = max(self.last_template_frame, msg.frame)
         odo = self.pending.pop(msg.frame, None)
         if odo is not None:
@@ -133,10 +138,11 @@ class PoseCellsNode(Node):
     def info(self) -> dict[str, Any]:
         return {"templates": len(self.pc.templates), "experiences": len(self.pc.experiences),
                 "actions": {str(k): v for k, v in self.actions.items()}, "pending_odom": len(self.pending),
+                "gate_refused": self.gate.refused,
                 "best_pose_cells": [round(v, 3) for v in self.pc.best]}
 
     def state_dict(self) -> dict[str, Any]:
-        return {"pc": self.pc.state_dict(), "last_template_frame": self.last_template_frame,
+        return {"pc": self.pc.state_dict(), "gate": self.gate.state_dict(), "last_template_frame": self.last_template_frame,
                 "max_odom_frame": self.max_odom_frame, "last_odom_frame": self.last_odom_frame,
                 "actions": {str(k): v for k, v in self.actions.items()},
                 "prev_odom_stamp": -1.0 if self.prev_odom_stamp is None else self.prev_odom_stamp,
@@ -146,6 +152,8 @@ class PoseCellsNode(Node):
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
         self.pc.load_state_dict(st["pc"])
+        if "gate" in st:
+            self.gate.load_state_dict(st["gate"])
         self.last_template_frame = int(st["last_template_frame"])
         self.max_odom_frame = int(st["max_odom_frame"])
         self.last_odom_frame = int(st.get("last_odom_frame", -1))

@@ -48,6 +48,12 @@ class ExperienceMapConfig(BaseModel):
     exp_correction: float = 0.5
     exp_initial_em_deg: float = 90.0
     openratslam_compat: bool = False
+    #: issue #14: robust relaxation. 0 (OpenRatSLAM): every link pulls by exp_correction of its
+    #: error. k > 0 (metres): a link whose position error is r pulls by exp_correction * k^2 / (k^2
+    #: + r^2) of it (a Cauchy weight, recomputed at every sweep), so a link whose error stays
+    #: large, as a wrong loop closure's does, moves the map by at most exp_correction * k / 2 per
+    #: sweep, while links that agree with the rest (small r) pull as in OpenRatSLAM.
+    exp_robust_m: float = Field(0.0, ge=0)
 
 
 def clip_pi(a: float) -> float:
@@ -74,9 +80,11 @@ def _clip(a):  # pragma: no cover - compiled
 
 
 @njit(cache=True)
-def _relax(x, y, th, lfrom, lto, ld, lhead, lface, loops, corr):  # pragma: no cover - compiled
+def _relax(x, y, th, lfrom, lto, ld, lhead, lface, loops, corr, robust=0.0):  # pragma: no cover - compiled
     """exp_loops Gauss-Seidel sweeps: experiences in index order, each one's outgoing links in
-    insertion order (a counting sort of the link list by source keeps that order)."""
+    insertion order (a counting sort of the link list by source keeps that order). ``robust`` > 0:
+    each link's correction is scaled by the Cauchy weight robust^2 / (robust^2 + r^2) of its
+    current position error r (ExperienceMapConfig.exp_robust_m)."""
     n = x.shape[0]
     m = lfrom.shape[0]
     ptr = np.zeros(n + 1, np.int64)
@@ -96,15 +104,19 @@ def _relax(x, y, th, lfrom, lto, ld, lhead, lface, loops, corr):  # pragma: no c
                 e1 = lto[li]
                 lx = x[e0] + ld[li] * math.cos(th[e0] + lhead[li])
                 ly = y[e0] + ld[li] * math.sin(th[e0] + lhead[li])
-                dx = (x[e1] - lx) * corr
-                dy = (y[e1] - ly) * corr
+                c = corr
+                if robust > 0.0:
+                    r2 = (x[e1] - lx) ** 2 + (y[e1] - ly) ** 2
+                    c = corr * robust * robust / (robust * robust + r2)
+                dx = (x[e1] - lx) * c
+                dy = (y[e1] - ly) * c
                 x[e0] += dx
                 y[e0] += dy
                 x[e1] -= dx
                 y[e1] -= dy
                 df = _clip(th[e1] - (th[e0] + lface[li]))
-                th[e0] = _clip(th[e0] + df * corr)
-                th[e1] = _clip(th[e1] - df * corr)
+                th[e0] = _clip(th[e0] + df * c)
+                th[e1] = _clip(th[e1] - df * c)
 
 
 def _grow(a: np.ndarray, n: int) -> np.ndarray:
@@ -283,7 +295,7 @@ class ExperienceMap:
         lf, lv = self._lf[: self._m], self._lv[: self._m]
         _relax(x, y, th, np.ascontiguousarray(lf[:, 0]), np.ascontiguousarray(lf[:, 1]),
                np.ascontiguousarray(lv[:, 0]), np.ascontiguousarray(lv[:, 1]), np.ascontiguousarray(lv[:, 2]),
-               self.cfg.exp_loops, self.cfg.exp_correction)
+               self.cfg.exp_loops, self.cfg.exp_correction, self.cfg.exp_robust_m)
         nodes[: self._n, 0], nodes[: self._n, 1], nodes[: self._n, 2] = x, y, th
         self.relax_time_s = time.perf_counter() - t0
 
@@ -306,7 +318,7 @@ class ExperienceMap:
         """Compile (or load from numba's cache) the relaxation kernel before the first frame."""
         z = np.zeros(2)
         _relax(z.copy(), z.copy(), z.copy(), np.zeros(1, np.int64), np.ones(1, np.int64), z[:1].copy(),
-               z[:1].copy(), z[:1].copy(), 1, 0.5)
+               z[:1].copy(), z[:1].copy(), 1, 0.5, 0.0)
 
     def export(self) -> dict[str, Any]:
         """Nodes (id, x, y, theta, creation stamp) and links (from, to, d, heading, facing, dt)."""

@@ -43,6 +43,7 @@ from scipy.ndimage import correlate1d
 
 from .._config import make_config
 from ..errors import InvalidInput
+from .odometry_gate import OdometryGateConfig
 
 NO_ACTION, CREATE_NODE, CREATE_EDGE, SET_NODE = 0, 1, 2, 3
 CELLS_TO_AVG = 3
@@ -66,6 +67,9 @@ class PoseCellConfig(BaseModel):
     exp_delta_pc_threshold: float = 2.0
     pc_vt_restore: float = 0.05
     openratslam_compat: bool = False
+    #: issue #14: templates whose place odometry cannot explain do not reach the network (used by
+    #: the pose-cell node, see odometry_gate.py; radius_m 0 = off, OpenRatSLAM)
+    odometry_gate: OdometryGateConfig = Field(default_factory=OdometryGateConfig)
 
 
 def _wrapped_support(mask: np.ndarray, margin: int) -> np.ndarray | None:

@@ -1,0 +1,284 @@
+"""Lever study of issue #14 ("maps users can trust") -> bench/results/maps.json.
+
+Each lever is measured ALONE against the paper profile (``configs/paper.yaml`` when present,
+else today's settings) and then all kept levers together (the new default), on:
+
+* the synthetic world (the full default route, 2445 frames, three laps), through the in-process
+  chain of nodes (the same code as a lossless ``neoslam run``): APE mean of the experience-map
+  trajectory after SE(2) alignment, odometry's APE, closure precision / recall (a closure is
+  correct when the matched template's first frame lies within 1 m of the frame's true position);
+* the TU Chemnitz corridor run (back end only, with its visual loop candidates; ground truth
+  position rows only): map error mean vs odometry's;
+* Nordland summer -> winter through B, C, D (``bench/frontend.py`` measures recall@1 of A and B).
+
+The in-process API is deterministic, so A's features are computed once per dataset and cached
+in ``$NEOSLAM_CACHE`` (default ``/tmp/neoslam_maps``), never in the repository; C's SDRs are
+cached per (B, C) configuration. Run: ``.venv/bin/python bench/maps.py [--only NAME ...]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import hashlib
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from neoslam_stream.config import load_config  # noqa: E402
+from neoslam_stream.evaluation import evaluate_run  # noqa: E402
+from neoslam_stream.nodes.pipelines import build_plan  # noqa: E402
+from neoslam_stream.runtime.local import LocalChain  # noqa: E402
+from neoslam_stream.runtime.messages import Message  # noqa: E402
+from neoslam_stream.tum import write_tum  # noqa: E402
+
+CACHE = Path(os.environ.get("NEOSLAM_CACHE", "/tmp/neoslam_maps"))
+RESULTS = Path(__file__).parent / "results"
+
+
+def _key(obj: Any) -> str:
+    return hashlib.sha1(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def synthetic_inputs(frames: int | None = None) -> dict[str, np.ndarray]:
+    """A's features (the shipped default backbone), odometry, stamps and ground truth of the
+    synthetic route, computed once and cached."""
+    from neoslam_stream.nodes.features import FeatureNode
+    from neoslam_stream.nodes.pipelines import neoslam_feature_params
+    from neoslam_stream.sources.synthetic import SyntheticWorldSource
+
+    cfg = load_config("default")
+    feats_params, _ = neoslam_feature_params(cfg)
+    path = CACHE / f"synthetic_{_key([feats_params, frames])}.npz"
+    if path.exists():
+        return dict(np.load(path))
+    CACHE.mkdir(parents=True, exist_ok=True)
+    params = dict(cfg.source.params)
+    if frames:
+        params["frames"] = frames
+    node = FeatureNode(**feats_params)
+    node.setup()
+    F, odo, gt, st = [], [], [], []
+    for sf in SyntheticWorldSource(**params):
+        msg = Message("image", sf.frame, sf.stamp, {"image": sf.image, "encoding": "rgb8"})
+        [(_, out)] = node.process("image", msg)
+        F.append(out["features"])
+        odo.append(sf.odom)
+        gt.append(sf.groundtruth)
+        st.append(sf.stamp)
+    data = {"features": np.stack(F).astype(np.float32), "odom": np.array(odo), "gt": np.array(gt),
+            "stamps": np.array(st), "backbone": np.array(feats_params["backbone"])}
+    np.savez(path, **data)
+    return data
+
+
+def _plan(cfg: Any, skip: tuple[str, ...]) -> list:
+    return [s for s in build_plan(cfg).stages if s.name not in skip]
+
+
+def sdrs(cfg: Any, data: dict[str, np.ndarray]) -> list[dict[str, Any]]:
+    """C's output per frame for B and C of ``cfg`` (cached per their parameters)."""
+    specs = [s for s in _plan(cfg, ("A",)) if s.name in ("B", "C")]
+    path = CACHE / f"sdr_{_key([[s.params for s in specs], str(data['backbone']), len(data['stamps'])])}.npz"
+    if path.exists():
+        z = np.load(path)
+        return [{"cells": c, "size": int(z["size"])} for c in np.split(z["cells"], z["ptr"][1:-1])]
+    chain = LocalChain(specs)
+    out = []
+    bb = str(data["backbone"])
+    for i, f in enumerate(data["features"]):
+        res = chain.push("visual_features", Message("visual_features", i, float(data["stamps"][i]),
+                                                   {"features": f, "backbone": bb}))
+        [m] = [m for t, m in res if t == "sdr"]
+        out.append({"cells": np.asarray(m["cells"]), "size": int(m["size"])})
+    chain.finish()
+    lens = [len(o["cells"]) for o in out]
+    np.savez(path, cells=np.concatenate([o["cells"] for o in out]), ptr=np.concatenate([[0], np.cumsum(lens)]),
+             size=out[0]["size"])
+    return out
+
+
+def run_synthetic(cfg: Any, data: dict[str, np.ndarray], run_dir: Path) -> dict[str, Any]:
+    """D + back end on the cached SDRs of ``cfg``'s B and C; writes the run folder and evaluates it."""
+    import math
+
+    seq = sdrs(cfg, data)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    chain = LocalChain(_plan(cfg, ("A", "B", "C")), run_dir)
+    t0 = time.perf_counter()
+    for i, s in enumerate(seq):
+        st = float(data["stamps"][i])
+        v, w, dt = data["odom"][i]
+        chain.push("odom", Message("odom", i, st, {"vtrans": float(v), "vrot": float(w), "dt": float(dt)}))
+        chain.push("sdr", Message("sdr", i, st, s))
+    chain.finish()
+    secs = time.perf_counter() - t0
+    gt = np.column_stack([data["stamps"], data["gt"]])
+    write_tum(run_dir / "groundtruth.tum", gt)
+    ox = oy = oth = 0.0
+    rows = []
+    for st, (v, w, dt) in zip(data["stamps"], data["odom"], strict=True):
+        oth += w * dt
+        ox += v * dt * math.cos(oth)
+        oy += v * dt * math.sin(oth)
+        rows.append((st, ox, oy, oth))
+    write_tum(run_dir / "odometry.tum", np.array(rows))
+    ev = evaluate_run(run_dir, plot=False)
+    lc = ev["loop_closures"]
+    return {"ape_mean_m": ev["trajectory_ape"]["mean_m"], "ape_max_m": ev["trajectory_ape"]["max_m"],
+            "odometry_mean_m": ev["odometry_ape"]["mean_m"], "closures": lc["closures"],
+            "precision": lc["precision"], "recall": lc["recall"], "radius_m": lc["radius_m"],
+            "d_and_backend_s": round(secs, 1)}
+
+
+# ---------------------------------------------------------------- Nordland summer -> winter
+
+NORDLAND = dict(step=8, min_std=10.0, tolerance=150)  # tests/test_frontend_nordland.py's protocol
+
+
+def nordland_inputs(backbone: str = "efficientnet_lite0") -> dict[str, Any]:
+    """A's features of the summer then winter frames (8 at a time, as the nodes batch), cached."""
+    from neoslam_stream.algorithms.features import VisualFeatureExtractor
+    from neoslam_stream.datasets.nordland import load_frames
+
+    path = CACHE / f"nordland_{_key([backbone, NORDLAND])}.npz"
+    if path.exists():
+        z = np.load(path)
+        return {"features": z["features"], "ids": z["ids"].tolist(), "n": int(z["n"])}
+    CACHE.mkdir(parents=True, exist_ok=True)
+    summer, winter, ids = load_frames(NORDLAND["step"], None, NORDLAND["min_std"])
+    fa = VisualFeatureExtractor(backbone=backbone, seed=42, threads=1)
+    frames = summer + winter
+    feats = np.concatenate([fa.extract_batch(frames[k:k + 8]) for k in range(0, len(frames), 8)])
+    np.savez(path, features=feats.astype(np.float32), ids=np.array(ids), n=len(summer))
+    return {"features": feats, "ids": ids, "n": len(summer)}
+
+
+def run_nordland(proj: dict, svc_list: list[dict], data: dict[str, Any]) -> list[dict]:
+    """B (``proj`` on top of the defaults), the real C and D (each of ``svc_list``; theta_sigma None:
+    calibrated on summer as in the Nordland test) on the cached features; precision / recall."""
+    from neoslam_stream.algorithms.neocortex import Neocortex
+    from neoslam_stream.algorithms.projector import BinaryProjector
+    from neoslam_stream.algorithms.spatial_view import SpatialViewCells
+    from neoslam_stream.datasets.nordland import calibrate_theta_sigma, evaluate
+
+    feats, ids, n = data["features"], data["ids"], data["n"]
+    path = CACHE / f"nordland_sdr_{_key([proj, feats.shape])}.npz"
+    if path.exists():
+        z = np.load(path)
+        bits = np.split(z["bits"], z["bptr"][1:-1])
+        sdr = np.split(z["cells"], z["cptr"][1:-1])
+    else:
+        pb = BinaryProjector(input_dim=feats.shape[1], **{"projection": "gaussian", "seed": 42, **proj})
+        nc = Neocortex()
+        bits, sdr = [], []
+        for k in range(0, len(feats), 8):
+            for b in pb.bits_batch(feats[k:k + 8]):
+                bits.append(np.asarray(b))
+                sdr.append(np.asarray(nc.compute(b)))
+        np.savez(path, bits=np.concatenate(bits), bptr=np.cumsum([0] + [len(b) for b in bits]),
+                 cells=np.concatenate(sdr), cptr=np.cumsum([0] + [len(c) for c in sdr]))
+    calibrated = calibrate_theta_sigma(bits[:n], ids, NORDLAND["tolerance"])
+    out = []
+    for svc in svc_list:
+        svc = dict(svc)
+        if svc.get("theta_sigma") is None:
+            svc["theta_sigma"] = calibrated
+        d = SpatialViewCells(**svc)
+        res = [d.compute(c.astype(np.uint32)) for c in sdr]
+        r = evaluate([int(m["id"]) for m in res], [bool(m["is_loop_closure"]) for m in res], ids, n,
+                     NORDLAND["tolerance"])
+        r.update({"svc": svc, "proj": proj, "places": n})
+        out.append(r)
+    return out
+
+
+def merge(base: dict, over: dict) -> dict:
+    out = copy.deepcopy(base)
+    for k, v in over.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = merge(out[k], v)
+        else:
+            out[k] = v
+    return out
+
+
+def base_config_dict() -> dict:
+    """The paper profile's settings (configs/paper.yaml when it ships, else the settings the
+    default had before issue #14)."""
+    from neoslam_stream.config import ConfigError
+    from neoslam_stream.config import load_config as load
+
+    try:
+        return load("paper").model_dump()
+    except ConfigError:  # the paper profile comes with another part of issue #14
+        return load(None, PAPER_FALLBACK).model_dump()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--only", nargs="*", default=None, help="lever names to run")
+    ap.add_argument("--frames", type=int, default=None)
+    ap.add_argument("--out", default=str(RESULTS / "maps.json"))
+    args = ap.parse_args()
+    from neoslam_stream.config import FullRunConfig
+
+    data = synthetic_inputs(args.frames)
+    base = base_config_dict()
+    results: dict[str, Any] = {}
+    out = Path(args.out)
+    if out.exists():
+        results = json.loads(out.read_text())
+    for name, over in LEVERS.items():
+        if args.only is not None and name not in args.only:
+            continue
+        cfg = FullRunConfig.model_validate(merge(base, over))
+        t0 = time.perf_counter()
+        r = run_synthetic(cfg, data, CACHE / "runs" / name)
+        r["wall_s"] = round(time.perf_counter() - t0, 1)
+        results.setdefault("synthetic", {})[name] = {"settings": over, **r}
+        print(name, json.dumps(r), flush=True)
+        out.write_text(json.dumps(results, indent=2))
+
+
+#: the default config's settings before issue #14 (what configs/paper.yaml freezes)
+PAPER_FALLBACK: dict = {
+    "run": {"pipeline": "neoslam", "topology": "pipeline", "mode": "lossless", "live": True},
+    "source": {"kind": "synthetic", "params": {"seed": 0}},
+    "features": {"backbone": "auto", "frame_stride": 1},
+    "projector": {"projection": "gaussian", "seed": 42},
+    "neocortex": {"tie_break": "lowest"},
+    "spatial_view": {"theta_alpha": 384, "theta_rho": 3, "theta_sigma": 470, "exclude_recent_intervals": 3},
+    "pose_cells": {"pc_dim_xy": 21, "pc_cell_x_size": 0.25, "pc_vt_inject_energy": 0.15,
+                   "exp_delta_pc_threshold": 2.0},
+    "experience_map": {"exp_loops": 20, "exp_initial_em_deg": 0},
+}
+
+#: lever name -> config overrides on the paper profile (each alone; "default" = all kept)
+LEVERS: dict[str, dict] = {
+    "paper": {},
+    "sequence_3": {"spatial_view": {"sequence": {"length": 3, "max_step": 2.0, "slack": 4}}},
+    "sequence_5": {"spatial_view": {"sequence": {"length": 5, "max_step": 2.0, "slack": 4}}},
+    "sequence_10": {"spatial_view": {"sequence": {"length": 10, "max_step": 2.0, "slack": 4}}},
+    "robust_0.5": {"experience_map": {"exp_robust_m": 0.5}},
+    "robust_1": {"experience_map": {"exp_robust_m": 1.0}},
+    "robust_2": {"experience_map": {"exp_robust_m": 2.0}},
+    "pc_inject_0.3": {"pose_cells": {"pc_vt_inject_energy": 0.3}},
+    "pc_torus_15m": {"pose_cells": {"pc_dim_xy": 30, "pc_cell_x_size": 0.5}},
+    "centre_100": {"projector": {"centre_window": 100}},
+    "gate_1_0.1": {"pose_cells": {"odometry_gate": {"radius_m": 1.0, "drift": 0.1}}},
+    "gate_1_0.2": {"pose_cells": {"odometry_gate": {"radius_m": 1.0, "drift": 0.2}}},
+    "seq5_gate_1_0.1": {"spatial_view": {"sequence": {"length": 5, "max_step": 2.0, "slack": 4}},
+                        "pose_cells": {"odometry_gate": {"radius_m": 1.0, "drift": 0.1}}},
+}
+
+
+if __name__ == "__main__":
+    main()

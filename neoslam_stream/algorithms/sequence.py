@@ -1,0 +1,78 @@
+"""Sequence consistency of loop closures (issue #14): a SeqSLAM-style window over D's matches.
+
+Stage D proposes, for frame t, the best older interval k* whose score s_k* exceeds theta_sigma.
+One frame's best match is often wrong where places look alike (door frames, repeated textures):
+the paper hoped that C's sequence context would prevent that, but with the paper's parameters C
+is a fixed re-indexing. This filter asks for the sequence context explicitly: a closure of frame
+t onto the reference frame m_t (the first frame of interval k*) is accepted only when each of the
+``length`` previous frames t-i (i = 1..length) also had a candidate, and its reference frame
+m_{t-i} lies within ``i * max_step + slack`` frames of m_t. A robot that comes back to a place
+sees the places before it again too, in either direction (|m_t - m_{t-i}| grows by at most
+``max_step`` reference frames per query frame); an isolated look-alike is refused. ``slack``
+absorbs the interval granularity (an interval spans up to theta_rho + 1 frames).
+
+``length = 0`` switches the filter off (every candidate is a closure: the paper's rule).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from ._config import make_config
+
+
+class SequenceConfig(BaseModel):
+    """Parameters of :class:`SequenceFilter` (frames are D's frames, counted from 0)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    length: int = Field(0, ge=0, description="previous frames that must agree (0: filter off)")
+    max_step: float = Field(2.0, gt=0, description="reference frames per query frame, at most")
+    slack: int = Field(4, ge=0, description="frames of tolerance (interval granularity)")
+
+
+class SequenceFilter:
+    """Accepts a loop closure only after a run of consistent candidates (module docstring)."""
+
+    def __init__(self, config: SequenceConfig | None = None, **overrides: Any) -> None:
+        self.config = cfg = make_config(SequenceConfig, config, overrides)
+        self.length = cfg.length
+        self.max_step = cfg.max_step
+        self.slack = cfg.slack
+        #: (frame, reference frame or -1 when the frame had no candidate), the newest last
+        self.history: deque[tuple[int, int]] = deque(maxlen=max(self.length, 1))
+        self.refused = 0
+
+    @property
+    def enabled(self) -> bool:
+        return self.length > 0
+
+    def consistent(self, t: int, ref: int) -> bool:
+        """Whether frames t-1 .. t-length all had candidates within i*max_step + slack of ``ref``."""
+        by_frame = dict(self.history)
+        for i in range(1, self.length + 1):
+            m = by_frame.get(t - i, -1)
+            if m < 0 or abs(ref - m) > i * self.max_step + self.slack:
+                return False
+        return True
+
+    def check(self, t: int, ref: int) -> bool:
+        """Record frame t's candidate (``ref`` = its reference frame, -1 for none) and return
+        whether a closure at t is accepted. Call once per frame, in frame order."""
+        ok = ref >= 0 and (not self.enabled or self.consistent(t, ref))
+        if self.enabled:
+            self.refused += int(ref >= 0 and not ok)
+            self.history.append((int(t), int(ref)))
+        return ok
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"history": [list(h) for h in self.history], "refused": self.refused}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.history.clear()
+        for t, m in state.get("history", []):
+            self.history.append((int(t), int(m)))
+        self.refused = int(state.get("refused", 0))

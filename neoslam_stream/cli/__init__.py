@@ -27,6 +27,12 @@ def _overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
         over["run"]["live"] = False
     if getattr(args, "checkpoint_every", None):
         over["run"]["checkpoint_every"] = args.checkpoint_every
+    if getattr(args, "ros2_out", None) or getattr(args, "ros2_connect", None):
+        over["ros2_out"] = {}
+        if getattr(args, "ros2_out", None):
+            over["ros2_out"]["format"] = args.ros2_out
+        if getattr(args, "ros2_connect", None):
+            over["ros2_out"]["connect"] = list(args.ros2_connect)
     if getattr(args, "source", None):
         over["source"]["kind"] = args.source
     if getattr(args, "source_param", None):
@@ -195,6 +201,11 @@ def build_parser() -> argparse.ArgumentParser:
     p_run.add_argument("--map", metavar="MAP_FILE",
                        help="start from a map exported by `neoslam map export` (long-term deployment)")
     p_run.add_argument("--pipeline", help="pipeline name (neoslam, ratslam, emulated)")
+    p_run.add_argument("--ros2-out", nargs="?", const="bridge", choices=["bridge", "rmw", "both"],
+                       help="publish the outputs as ROS 2 messages: keys of zenoh-bridge-ros2dds (default), "
+                            "of rmw_zenoh, or both (docs/ros2.md)")
+    p_run.add_argument("--ros2-connect", action="append", metavar="ENDPOINT",
+                       help="zenoh endpoint of the ROS 2 side's router, e.g. tcp/localhost:7447 (repeatable)")
     p_run.set_defaults(func=cmd_run)
 
     p_mon = sub.add_parser("monitor", help="attach a live table to a running pipeline",

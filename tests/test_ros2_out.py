@@ -189,3 +189,49 @@ def test_recorder_writes_outputs_mcap_readable_by_the_mcap_reader(tmp_path):
     expected = replay(conv, rec.templates, rec.trajectory, None)
     assert [c.topic for _, c, _, _ in msgs] == [o.topic for o in expected]
     assert [m.data for _, _, m, _ in msgs] == [conv.serialize(o) for o in expected]
+
+
+def test_a_run_publishes_ros2_messages_and_writes_outputs_mcap(tmp_path):
+    """``neoslam run --ros2-out both --ros2-connect EP``: a ROS 2 side listening on EP (a router in
+    real life, a test session here) gets the poses live, and the run folder holds outputs.mcap."""
+    import subprocess
+    import sys
+
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    ros_side = open_session(listen=[ep])
+    bridged, s1 = _collector(ros_side, "slam/**")
+    rmw, s2 = _collector(ros_side, "0/slam/**")
+    run_dir = tmp_path / "run"
+    cfg = tmp_path / "cfg.yaml"
+    cfg.write_text("ros2_out:\n  prefix: /slam\n  map_period_s: 0.5\n")
+    proc = subprocess.run([sys.executable, "-m", "neoslam_stream.cli", "run", "-c", str(cfg), "--pipeline", "ratslam",
+                           "--max-frames", "40", "--lossless", "--no-live", "--ros2-out", "both",
+                           "--ros2-connect", ep, "--out", str(run_dir)],
+                          capture_output=True, text=True, timeout=300)
+    time.sleep(0.3)
+    s1.undeclare()
+    s2.undeclare()
+    ros_side.close()
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    rows = [list(map(float, line.split())) for line in (run_dir / "trajectory.tum").read_text().splitlines()]
+    assert len(rows) == 40
+    conv = Ros2Messages(prefix="/slam")
+    dec = _decoder(conv, "nav_msgs/msg/Odometry")
+    live = [dec(p) for k, p, _ in bridged if k == "slam/odom"]
+    assert len(live) == len(rows)  # lossless run, loopback, a subscriber that keeps up
+    assert len([k for k, _, _ in rmw if k.startswith("0/slam/odom/nav_msgs::msg::dds_::Odometry_/RIHS01_")]) == len(rows)
+    for od, r in zip(live, rows, strict=True):
+        assert od.header.stamp.sec + od.header.stamp.nanosec * 1e-9 == pytest.approx(r[0], abs=1e-6)
+        assert (od.pose.pose.position.x, od.pose.pose.position.y) == pytest.approx((r[1], r[2]), abs=1e-6)
+        assert (od.pose.pose.orientation.z, od.pose.pose.orientation.w) == pytest.approx((r[6], r[7]), abs=1e-8)
+    assert any(k == "slam/map_markers" for k, _, _ in bridged)
+    # outputs.mcap: the same poses, with their schemas, read back by the mcap reader
+    with open(run_dir / MCAP, "rb") as fh:
+        msgs = list(make_reader(fh, decoder_factories=[DecoderFactory()]).iter_decoded_messages())
+    poses = [d for _, c, _, d in msgs if c.topic == "/slam/pose"]
+    assert len(poses) == len(rows)
+    for ps, r in zip(poses, rows, strict=True):
+        assert (ps.pose.position.x, ps.pose.position.y) == pytest.approx((r[1], r[2]), abs=1e-6)
+    markers = [d for _, c, _, d in msgs if c.topic == "/slam/map_markers"]
+    n_nodes = len(json.loads((run_dir / "map.json").read_text())["nodes"])
+    assert len({m.ns: m for m in markers[-1].markers}["experiences"].points) == n_nodes

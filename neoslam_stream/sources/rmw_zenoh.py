@@ -205,7 +205,15 @@ class RmwZenohCameraSource(ZenohRos2CameraSource):
     router: ``tcp/<host>:7447``), ``mode``, ``capacity``, ``timeout_s``, ``warn_after_s``.
     """
 
-    def __init__(self, **params: Any) -> None:
+    def __init__(self, image_topic: str, odom_topic: str | None = None, domain_id: int = 0,
+                 connect: list[str] | None = None, listen: list[str] | None = None, mode: str = "peer",
+                 capacity: int = 2, timeout_s: float | None = None, warn_after_s: float = 5.0,
+                 **unknown: Any) -> None:
+        # the signature names the parameters (checked by `neoslam run`'s plan); the model validates
+        # their values, and the names nobody knows, in one message
+        params = {"image_topic": image_topic, "odom_topic": odom_topic, "domain_id": domain_id, "connect": connect,
+                  "listen": listen, "mode": mode, "capacity": capacity, "timeout_s": timeout_s,
+                  "warn_after_s": warn_after_s, **unknown}
         try:
             cfg = RmwZenohConfig(**params)
         except ValidationError as exc:

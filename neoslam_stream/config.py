@@ -47,6 +47,8 @@ class Ros2OutConfig(BaseModel):
     #: the path and the map markers are sent at most this often (seconds of source time)
     map_period_s: float = Field(1.0, gt=0)
     marker_scale: float = Field(0.1, gt=0)
+    #: the path holds at most about this many poses (evenly thinned), so sending it stays cheap
+    path_max_poses: int = Field(1000, ge=2)
     connect: list[str] = Field(default_factory=list)
     mcap: bool = True
     #: outputs.mcap holds the path and the map every this many seconds of source time
@@ -55,7 +57,8 @@ class Ros2OutConfig(BaseModel):
     def message_params(self) -> dict[str, Any]:
         """What :class:`~neoslam_stream.nodes.ros2_out.Ros2Messages` takes."""
         return {"frame_id": self.frame_id, "child_frame_id": self.child_frame_id, "prefix": self.prefix,
-                "distro": self.distro, "map_period_s": self.map_period_s, "marker_scale": self.marker_scale}
+                "distro": self.distro, "map_period_s": self.map_period_s, "marker_scale": self.marker_scale,
+                "path_max_poses": self.path_max_poses}
 
 
 class FullRunConfig(RunConfig):

@@ -95,6 +95,15 @@ def test_messages_decode_with_foxglove_decoder(distro):
     assert conv.on_map(12.0, {"nodes": [1]}) == []  # not a map: the drawn map stays, nothing sent
 
 
+def test_a_long_path_is_thinned_evenly_and_keeps_its_last_pose():
+    conv = Ros2Messages(map_period_s=1e9, path_max_poses=4)
+    for f in range(8):
+        conv.on_pose(f, float(f), float(f), 0.0, 0.0, 0)
+    (path, _) = conv.finish()
+    # poses 0..3 kept; the 5th makes 5 > 4: every 2nd is kept (0, 2, 4), then 6; and the last, 7
+    assert [p.pose.position.x for p in path.msg.poses] == [0.0, 2.0, 4.0, 6.0, 7.0]
+
+
 def test_type_hashes_are_the_ros_ones():
     assert type_hash("std_msgs/msg/String") == STRING_HASH
     assert type_hash("std_msgs/msg/String", "humble") == "TypeHashNotSupported"
@@ -186,7 +195,7 @@ def test_recorder_writes_outputs_mcap_readable_by_the_mcap_reader(tmp_path):
         _check_pose(d.pose.pose, x, y, th)
     # the same messages as the live output gets from the same topics
     conv = Ros2Messages(**params)
-    expected = replay(conv, rec.templates, rec.trajectory, None)
+    expected = list(replay(conv, rec.templates, rec.trajectory, None))
     assert [c.topic for _, c, _, _ in msgs] == [o.topic for o in expected]
     assert [m.data for _, _, m, _ in msgs] == [conv.serialize(o) for o in expected]
 

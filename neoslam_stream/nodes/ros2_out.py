@@ -9,7 +9,7 @@ topic                     type                                  what
 ========================  ====================================  =====================================
 ``/neoslam/odom``         nav_msgs/msg/Odometry                 the experience-map pose per frame
 ``/neoslam/pose``         geometry_msgs/msg/PoseStamped         the same pose
-``/neoslam/path``         nav_msgs/msg/Path                     every pose so far (each ``map_period_s``)
+``/neoslam/path``         nav_msgs/msg/Path                     the poses so far (``path_max_poses``)
 ``/neoslam/map_markers``  visualization_msgs/msg/MarkerArray    experiences (spheres), links (lines),
                                                                 loop closures (red lines)
 ``/neoslam/template_id``  std_msgs/msg/Int32                    the frame's visual template id
@@ -49,6 +49,7 @@ import logging
 import math
 import secrets
 import time
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -109,13 +110,21 @@ class Ros2Messages:
     """Our messages in, ROS 2 messages (:class:`RosOut`) out. Plain state, no I/O."""
 
     def __init__(self, frame_id: str = "map", child_frame_id: str = "base_link", prefix: str = "/neoslam",
-                 distro: str = "jazzy", map_period_s: float = 1.0, marker_scale: float = 0.1) -> None:
+                 distro: str = "jazzy", map_period_s: float = 1.0, marker_scale: float = 0.1,
+                 path_max_poses: int = 1000) -> None:
         self.ts = typestore(distro)
         self.frame_id, self.child_frame_id = frame_id, child_frame_id
         self.prefix = "/" + prefix.strip("/") if prefix.strip("/") else ""
         self.map_period_s = float(map_period_s)
         self.marker_scale = float(marker_scale)
-        self.path: list[tuple[float, float, float, float]] = []  # stamp, x, y, theta
+        #: the path's PoseStamped messages: every ``_stride``-th pose, at most ``path_max_poses``
+        #: (the stride doubles when they would be more), so a long run's path costs the same to
+        #: send as a short one's
+        self.path: list[Any] = []
+        self.path_max_poses = max(2, int(path_max_poses))
+        self._stride, self._n_poses = 1, 0
+        self._last_pose: Any = None
+        self._last_stamp = 0.0
         #: experience id -> (x, y): where the robot first was in it (until the final map)
         self.exps: dict[int, tuple[float, float]] = {}
         self.links: dict[tuple[int, int], None] = {}  # ordered set
@@ -189,9 +198,15 @@ class Ros2Messages:
     def on_pose(self, frame: int, stamp: float, x: float, y: float, th: float, exp_id: int) -> list[RosOut]:
         """The experience-map pose of a frame: Odometry and PoseStamped, and now and then the path
         and the map drawn so far."""
-        out = [self._out("odom", self._odometry(stamp, x, y, th), stamp),
-               self._out("pose", self._pose_stamped(stamp, x, y, th), stamp)]
-        self.path.append((stamp, x, y, th))
+        pose = self._pose_stamped(stamp, x, y, th)  # also the path's (built once: paths are long)
+        out = [self._out("odom", self._odometry(stamp, x, y, th), stamp), self._out("pose", pose, stamp)]
+        if self._n_poses % self._stride == 0:
+            self.path.append(pose)
+            if len(self.path) > self.path_max_poses:
+                self.path = self.path[::2]
+                self._stride *= 2
+        self._n_poses += 1
+        self._last_pose, self._last_stamp = pose, stamp
         if len(self.exp_of_frame) > 4096:  # only recent frames are looked up (loop-closure events)
             self.exp_of_frame.clear()
         self.exp_of_frame[frame] = exp_id
@@ -223,15 +238,18 @@ class Ros2Messages:
         """The path and map once more if they changed since they were last sent."""
         if not self.changed:
             return []
-        return self.map_messages(stamp if stamp is not None else (self.path[-1][0] if self.path else 0.0))
+        return self.map_messages(stamp if stamp is not None else self._last_stamp)
 
     # ----------------------------------------------------------------- the map
     def map_messages(self, stamp: float) -> list[RosOut]:
-        """nav_msgs/Path of every pose so far, and the MarkerArray of the map."""
+        """nav_msgs/Path of the poses so far (every one, or every ``_stride``-th and the last),
+        and the MarkerArray of the map."""
         self.last_map_stamp, self.changed = stamp, False
         T = self.ts.types
-        path = T["nav_msgs/msg/Path"](header=self._header(stamp),
-                                      poses=[self._pose_stamped(t, x, y, th) for t, x, y, th in self.path])
+        poses = list(self.path)
+        if self._last_pose is not None and (not poses or poses[-1] is not self._last_pose):
+            poses.append(self._last_pose)
+        path = T["nav_msgs/msg/Path"](header=self._header(stamp), poses=poses)
         fwd, closures = [], []
         for a, b in self.links:
             if a in self.exps and b in self.exps:
@@ -254,28 +272,26 @@ class Ros2Messages:
 
 
 def replay(conv: Ros2Messages, templates: list[tuple], trajectory: list[tuple],
-           map_export: dict[str, Any] | None) -> list[RosOut]:
+           map_export: dict[str, Any] | None) -> Iterator[RosOut]:
     """The messages of a whole run from the recorder's rows (templates: frame, stamp, id, loop
     closure...; trajectory: frame, stamp, x, y, theta, exp id), in frame order, the template of a
     frame before its pose, then the final map."""
     events = sorted([(r[0], 0, r) for r in templates] + [(r[0], 1, r) for r in trajectory],
                     key=lambda e: (e[0], e[1]))
-    out: list[RosOut] = []
     for _, kind, r in events:
         if kind == 0:
-            out.extend(conv.on_template(r[0], r[1], r[2], bool(r[3])))
+            yield from conv.on_template(r[0], r[1], r[2], bool(r[3]))
         else:
-            out.extend(conv.on_pose(r[0], r[1], r[2], r[3], r[4], r[5]))
+            yield from conv.on_pose(r[0], r[1], r[2], r[3], r[4], r[5])
     last = max([r[1] for r in trajectory] + [r[1] for r in templates] + [0.0])
     if map_export is not None:
-        out.extend(conv.on_map(last, map_export))
-    out.extend(conv.finish(last))
-    return out
+        yield from conv.on_map(last, map_export)
+    yield from conv.finish(last)
 
 
-def mcap_bytes(conv: Ros2Messages, outs: list[RosOut]) -> bytes:
-    """An MCAP file (ros2msg schemas, CDR messages, zstd chunks) of ``outs``; log and publish
-    times are the messages' source stamps."""
+def mcap_bytes(conv: Ros2Messages, outs: Iterable[RosOut]) -> bytes:
+    """An MCAP file (ros2msg schemas, CDR messages, zstd chunks) of ``outs``, serialised one by
+    one as they come; log and publish times are the messages' source stamps."""
     from mcap.writer import CompressionType, Writer
 
     buf = io.BytesIO()
@@ -312,13 +328,14 @@ class Ros2OutNode(Node):
 
     def __init__(self, format: str = "bridge", domain_id: int = 0, frame_id: str = "map",
                  child_frame_id: str = "base_link", prefix: str = "/neoslam", distro: str = "jazzy",
-                 map_period_s: float = 1.0, marker_scale: float = 0.1, node_name: str = "neoslam") -> None:
+                 map_period_s: float = 1.0, marker_scale: float = 0.1, path_max_poses: int = 1000,
+                 node_name: str = "neoslam") -> None:
         super().__init__()
         if format not in ("bridge", "rmw", "both"):
             raise ValueError(f"ros2_out format {format!r} must be bridge, rmw or both")
         self.formats = ("bridge", "rmw") if format == "both" else (format,)
         self.domain_id, self.distro, self.node_name = int(domain_id), distro, node_name
-        self.conv = Ros2Messages(frame_id, child_frame_id, prefix, distro, map_period_s, marker_scale)
+        self.conv = Ros2Messages(frame_id, child_frame_id, prefix, distro, map_period_s, marker_scale, path_max_poses)
         self._session: Any = None
         self._pubs: dict[tuple[str, str], Any] = {}
         self._seq: dict[str, int] = {}

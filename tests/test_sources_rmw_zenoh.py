@@ -195,3 +195,12 @@ def test_bad_parameters_give_one_clear_error():
     with pytest.raises(ValueError, match="rmw-zenoh"):
         ZenohRos2CameraSource("/cam", namespace=1)
     assert source_factory("rmw-zenoh").endswith(":RmwZenohCameraSource")
+
+
+def test_the_run_summary_says_how_many_frames_were_lost_before_the_source(capsys):
+    from neoslam_stream.cli import print_summary
+
+    print_summary({"run": "r", "stages": {}, "source": {"kind": "rmw-zenoh", "lost_before_source": 2}})
+    assert "lost before the source: 2 frames" in capsys.readouterr().out
+    print_summary({"run": "r", "stages": {}, "source": {"kind": "synthetic"}})
+    assert "lost before the source" not in capsys.readouterr().out

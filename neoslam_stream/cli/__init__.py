@@ -139,6 +139,9 @@ def print_summary(report: dict[str, Any]) -> None:
               f"(strided {report.get('frames_strided')}), loss {100 * report.get('loss', 0):.1f} %, "
               f"f_in {report.get('f_in', 0):.2f} Hz, f_out {report.get('f_out', 0):.2f} Hz, "
               f"f_pipeline {fp if fp is None else round(fp, 2)} Hz (bottleneck {report.get('bottleneck')})")
+    src = report.get("source") or {}
+    if src.get("lost_before_source"):  # a live ROS 2 camera's gaps in its sequence numbers
+        con.print(f"lost before the source: {src['lost_before_source']} frames (publishers' sequence numbers)")
     con.print(f"run folder: {report.get('run_dir')}")
 
 

@@ -25,8 +25,41 @@ from .algorithms.ratslam.visual_odometry import VisualOdometryConfig
 from .algorithms.spatial_view import SpatialViewConfig
 from .runtime.config import ConfigError, RunConfig, load_yaml_config
 
-__all__ = ["ConfigError", "FullRunConfig", "config_model", "load_config", "packaged_configs",
+__all__ = ["ConfigError", "FullRunConfig", "Ros2OutConfig", "config_model", "load_config", "packaged_configs",
            "packaged_config_text"]
+
+
+class Ros2OutConfig(BaseModel):
+    """ROS 2 output (docs/ros2.md): the run's outputs as standard ROS 2 messages.
+
+    ``format``: None (no live output), ``bridge`` (keys as zenoh-bridge-ros2dds), ``rmw`` (keys
+    and attachments as rmw_zenoh) or ``both``; ``connect``: zenoh endpoints the publishing worker
+    also connects to (the bridge's or rmw_zenoh's router, e.g. ``tcp/localhost:7447``). ``mcap``:
+    the recorder also writes the same messages to ``outputs.mcap`` in the run folder."""
+
+    model_config = {"extra": "forbid"}
+
+    format: str | None = Field(None, pattern="^(bridge|rmw|both)$")
+    domain_id: int = Field(0, ge=0, le=232)
+    frame_id: str = "map"
+    child_frame_id: str = "base_link"
+    prefix: str = "/neoslam"
+    distro: str = Field("jazzy", pattern="^(humble|jazzy|kilted)$")
+    #: the path and the map markers are sent at most this often (seconds of source time)
+    map_period_s: float = Field(1.0, gt=0)
+    marker_scale: float = Field(0.1, gt=0)
+    #: the path holds at most about this many poses (evenly thinned), so sending it stays cheap
+    path_max_poses: int = Field(1000, ge=2)
+    connect: list[str] = Field(default_factory=list)
+    mcap: bool = True
+    #: outputs.mcap holds the path and the map every this many seconds of source time
+    mcap_map_period_s: float = Field(10.0, gt=0)
+
+    def message_params(self) -> dict[str, Any]:
+        """What :class:`~neoslam_stream.nodes.ros2_out.Ros2Messages` takes."""
+        return {"frame_id": self.frame_id, "child_frame_id": self.child_frame_id, "prefix": self.prefix,
+                "distro": self.distro, "map_period_s": self.map_period_s, "marker_scale": self.marker_scale,
+                "path_max_poses": self.path_max_poses}
 
 
 class FullRunConfig(RunConfig):
@@ -45,6 +78,7 @@ class FullRunConfig(RunConfig):
     oracle: OracleConfig = Field(default_factory=OracleConfig)
     #: wheel: odometry from the source; visual: RatSLAM's visual odometry stage
     odometry: str = Field("wheel", pattern="^(wheel|visual)$")
+    ros2_out: Ros2OutConfig = Field(default_factory=Ros2OutConfig)
 
 
 def config_model() -> type[BaseModel]:

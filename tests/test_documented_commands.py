@@ -67,10 +67,16 @@ VALIDATE = {
     "neoslam run --oracle-templates --oracle-radius 0.25 --max-frames 1200",
     "neoslam run --oracle-templates --oracle-heading-tolerance 180",
     "neoslam compare --max-frames 300",
+    "neoslam run --realtime --source rmw-zenoh -p image_topic=/camera/image_raw -p odom_topic=/odom "
+    "-p domain_id=0 -p 'connect=[\"tcp/robot:7447\"]'",
+    "neoslam run --ros2-out rmw --ros2-connect tcp/localhost:7447",
+    "neoslam run --ros2-out bridge --ros2-connect tcp/localhost:7447",
 }
 MAKE = {"make run", "make test", "make bench", "make", 'make run ARGS="--max-frames 300"'}
 ELSEWHERE = {
     "zenoh-bridge-ros2dds": "zenoh's bridge, run on the robot (not part of this package)",
+    "ros2": "a ROS 2 installation's command (rmw_zenoh's router, foxglove_bridge), run on the ROS 2 side",
+    "RMW_IMPLEMENTATION=rmw_zenoh_cpp": "RViz with rmw_zenoh, run on the ROS 2 side",
     "pip install .": "tests/test_packaging.py installs the wheel in a fresh venv and runs it",
     "pip install torch==2.13.0": "the Makefile's setup step, run by every `make run` / `make test`",
 }

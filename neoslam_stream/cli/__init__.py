@@ -33,6 +33,12 @@ def _overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
         over["run"]["live"] = False
     if getattr(args, "checkpoint_every", None):
         over["run"]["checkpoint_every"] = args.checkpoint_every
+    if getattr(args, "ros2_out", None) or getattr(args, "ros2_connect", None):
+        over["ros2_out"] = {}
+        if getattr(args, "ros2_out", None):
+            over["ros2_out"]["format"] = args.ros2_out
+        if getattr(args, "ros2_connect", None):
+            over["ros2_out"]["connect"] = list(args.ros2_connect)
     if getattr(args, "source", None):
         over["source"]["kind"] = args.source
     if getattr(args, "source_param", None):
@@ -156,6 +162,9 @@ def print_summary(report: dict[str, Any]) -> None:
     causes = _loss_causes(report.get("loss_breakdown"))
     if causes:
         con.print(f"loss by cause: {causes}")
+    src = report.get("source") or {}
+    if src.get("lost_before_source"):  # a live ROS 2 camera's gaps in its sequence numbers
+        con.print(f"lost before the source: {src['lost_before_source']} frames (publishers' sequence numbers)")
     con.print(f"run folder: {report.get('run_dir')}")
 
 
@@ -240,6 +249,11 @@ def build_parser() -> argparse.ArgumentParser:
     p_run.add_argument("--oracle-heading-tolerance", type=float, metavar="DEG",
                        help="the oracle matches a template only within this heading difference (default 45; "
                             "180 ignores the heading: closures a forward camera cannot make)")
+    p_run.add_argument("--ros2-out", nargs="?", const="bridge", choices=["bridge", "rmw", "both"],
+                       help="publish the outputs as ROS 2 messages: keys of zenoh-bridge-ros2dds (default), "
+                            "of rmw_zenoh, or both (docs/ros2.md)")
+    p_run.add_argument("--ros2-connect", action="append", metavar="ENDPOINT",
+                       help="zenoh endpoint of the ROS 2 side's router, e.g. tcp/localhost:7447 (repeatable)")
     p_run.set_defaults(func=cmd_run)
 
     p_mon = sub.add_parser("monitor", help="attach a live table to a running pipeline",

@@ -14,6 +14,7 @@ from ..runtime.topology import PipelinePlan
 
 RECORDER = "neoslam_stream.nodes.recorder:make_node"
 RATSLAM_NODES = "neoslam_stream.nodes.ratslam"
+ROS2_OUT = "neoslam_stream.nodes.ros2_out:make_node"
 #: the recorder reads these; it must not lose a row when the experience map's worker is busy
 RECORDER_CAPACITY = {"visual_template": 4096, "experience_map/pose": 4096, "experience_map/map": 4}
 
@@ -34,8 +35,16 @@ def _backend_specs(cfg: Any, specs: list[NodeSpec]) -> None:
     specs.append(NodeSpec("pose_cells", f"{RATSLAM_NODES}:make_pose_cells_node", cfg.pose_cells.model_dump()))
     specs.append(NodeSpec("experience_map", f"{RATSLAM_NODES}:make_experience_map_node",
                           cfg.experience_map.model_dump()))
-    specs.append(NodeSpec("recorder", RECORDER, host="experience_map", capacity=dict(RECORDER_CAPACITY),
-                          observer=True))
+    ros = getattr(cfg, "ros2_out", None)
+    rec_params = {} if ros is None or not ros.mcap else {
+        "mcap": {**ros.message_params(), "map_period_s": ros.mcap_map_period_s}}
+    specs.append(NodeSpec("recorder", RECORDER, rec_params, host="experience_map",
+                          capacity=dict(RECORDER_CAPACITY), observer=True))
+    if ros is not None and ros.format:
+        specs.append(NodeSpec("ros2_out", ROS2_OUT, {**ros.message_params(), "format": ros.format,
+                                                     "domain_id": ros.domain_id},
+                              host="experience_map", capacity=dict(RECORDER_CAPACITY), observer=True,
+                              connect=list(ros.connect)))
 
 
 def _source_topics(cfg: Any) -> list[str]:
@@ -118,6 +127,8 @@ def _branch(specs: list[NodeSpec], prefix: str, remap: dict[str, str], subdir: s
     out = []
     for spec in specs:
         if spec.factory.endswith("make_visual_odometry_node"):  # one odometry for every branch
+            continue
+        if spec.factory == ROS2_OUT:  # the ROS 2 topics carry the run's own NeoSLAM outputs
             continue
         spec.name = f"{prefix}{spec.name}"
         spec.remap = dict(remap)

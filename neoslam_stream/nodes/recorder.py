@@ -3,7 +3,8 @@
 It subscribes to ``visual_template`` (templates.csv: frame -> template id, loop closures; and
 closures.csv, one row per loop closure), ``experience_map/pose`` (trajectory.tum: the
 experience-map pose per frame), ``experience_map/map`` (map.json: nodes and links, published once
-at the end of the run) and ``groundtruth`` (the true distance of each closure). It is an
+at the end of the run) and ``groundtruth`` (the true distance of each closure), and with
+``mcap`` the same outputs as ROS 2 messages in ``outputs.mcap`` (docs/ros2.md). It is an
 observer: hosted in the experience map's worker, it does not keep those topics off the bus. Its
 rows are its state, so checkpoints, ``--resume`` and crash restarts give the same files as an
 uninterrupted run.
@@ -63,6 +64,8 @@ JOURNAL = ".recorder.journal"
 TEMPLATES, TRAJECTORY, CLOSURES = "templates.csv", "trajectory.tum", "closures.csv"
 #: closure rows that wait for ground truth before they are written without it when none has come
 GT_WAIT_ROWS = 64
+#: the outputs as ROS 2 messages (docs/ros2.md)
+MCAP = "outputs.mcap"
 
 
 def template_line(r: tuple) -> str:
@@ -111,8 +114,10 @@ class RecorderNode(Node):
     #: seconds between two attempts to write rows that could not be written (disk full)
     RETRY_S = 1.0
 
-    def __init__(self) -> None:
+    def __init__(self, mcap: dict[str, Any] | None = None) -> None:
         super().__init__()
+        #: the ROS 2 message parameters of outputs.mcap (None: no MCAP; nodes.ros2_out)
+        self.mcap = mcap
         self.templates: list[tuple[int, float, int, int, int, Any]] = []
         self.trajectory: list[tuple[int, float, float, float, float, int]] = []
         self.map_export: dict[str, Any] | None = None
@@ -348,7 +353,22 @@ class RecorderNode(Node):
                 write_atomic(path, json.dumps(self.map_export).encode())
             except OSError as exc:  # the previous map.json, if any, is intact
                 self._failed(path, exc)
+        if self.mcap is not None:
+            self._write_mcap()
         return []
+
+    def _write_mcap(self) -> None:
+        """outputs.mcap: the run's outputs as the ROS 2 messages of the live output, rebuilt from
+        the rows (so a restarted worker's file is whole), written at the end, atomically."""
+        from .ros2_out import Ros2Messages, mcap_bytes, replay
+
+        conv = Ros2Messages(**self.mcap)
+        data = mcap_bytes(conv, replay(conv, self.templates, self.trajectory, self.map_export))
+        path = Path(self.run_dir) / MCAP
+        try:
+            write_atomic(path, data)
+        except OSError as exc:
+            self._failed(path, exc)
 
     def close(self) -> None:
         for f in [*(self._files or {}).values(), self._journal]:
@@ -410,5 +430,5 @@ class RecorderNode(Node):
         self.gt_last_frame = self.last_template_frame = -1
 
 
-def make_node() -> RecorderNode:
-    return RecorderNode()
+def make_node(mcap: dict[str, Any] | None = None) -> RecorderNode:
+    return RecorderNode(mcap)

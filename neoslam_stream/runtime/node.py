@@ -24,6 +24,8 @@ Rules for nodes:
   :func:`is_input_error`).
 * Frames removed on purpose (``frame_stride``) return ``[]`` and increment ``self.counters["strided"]``,
   so the monitor does not count them as lost.
+* A node that publishes outside the run's topics (the ROS 2 output) defines
+  ``bind_session(session)``: its worker calls it with the run's zenoh session once connected.
 * ``info()`` returns small JSON-able facts for ``stats/<stage>`` and ``report.json`` (backbone that
   ran, TM segment counts...). ``flush()`` is called once at shutdown.
 """
@@ -143,6 +145,8 @@ class NodeSpec:
     #: the node only watches topics (the recorder): its process is stopped after all others, so
     #: it sees everything they produced up to their end (see Node.observer)
     observer: bool = False
+    #: zenoh endpoints the host worker also connects to (a ROS 2 router the node publishes to)
+    connect: list[str] = field(default_factory=list)
 
     def build(self) -> Node:
         node = load_factory(self.factory)(**self.params)

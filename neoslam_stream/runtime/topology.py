@@ -161,6 +161,7 @@ class Supervisor:
     def worker_spec(self, wname: str) -> WorkerSpec:
         specs = self.groups[wname]
         listen, connect = self._links(wname)
+        connect += [e for s in specs for e in s.connect if e not in connect]
         caps = dict(self.cfg.bus.capacity)
         for s in specs:  # what a node needs at least (the recorder must not lose rows)
             for t, c in s.capacity.items():

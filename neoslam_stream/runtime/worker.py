@@ -262,6 +262,10 @@ class Worker:
             for t in st.outputs:
                 if t not in self.produced_inside or t in self.spec.publish_internal:
                     self.bus.publisher(t)
+            # a node that publishes outside the run's topics (ROS 2 output) gets the session itself
+            bind = getattr(st.adapter, "bind_session", None)
+            if callable(bind):
+                bind(self.bus.session)
 
     def announce(self) -> None:
         """Declare readiness once linked to every process of the run (or after a timeout)."""

@@ -16,6 +16,7 @@ SOURCES: dict[str, str] = {
     "bag": "neoslam_stream.sources.bag:BagSource",
     "zenoh-ros2": "neoslam_stream.sources.zenoh_camera:ZenohRos2CameraSource",
     "zenoh": "neoslam_stream.sources.zenoh_camera:ZenohImageSource",
+    "rmw-zenoh": "neoslam_stream.sources.rmw_zenoh:RmwZenohCameraSource",
 }
 
 

@@ -105,6 +105,10 @@ class ZenohRos2CameraSource(_Live):
                  namespace: str | None = None, connect: list[str] | None = None, listen: list[str] | None = None,
                  capacity: int = 2, timeout_s: float | None = None, mode: str = "peer",
                  max_side: int | None = DEFAULT_MAX_SIDE) -> None:
+        if namespace is not None and not isinstance(namespace, str):
+            # `-p namespace=1` parses as a number: a ROS domain id, which this source has no use for
+            raise ValueError(f"namespace {namespace!r} must be the bridge's namespace (a name such as bot1); "
+                             "for ROS 2 nodes running rmw_zenoh use --source rmw-zenoh -p domain_id=N")
         if image_type not in ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"):
             raise ValueError(f"image_type {image_type!r} must be sensor_msgs/msg/Image or CompressedImage")
         super().__init__(connect, listen, capacity, timeout_s, mode)

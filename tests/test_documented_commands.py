@@ -44,11 +44,13 @@ RUN = {
     "neoslam map info site.neoslam",
     "neoslam config show default",
     "neoslam config show irat2011",
+    "neoslam view runs/monday --save monday.rrd",
 }
 VALIDATE = {
     "neoslam run",
     "neoslam run -p laps_cw=3 -p laps_ccw=2 -p seed=7",
     "neoslam run -c my.yaml",
+    "neoslam run --view",
     "neoslam run -c irat2011 -p path=data/irat_aus_28112011.bag",
     "neoslam run --realtime --source zenoh-ros2 -p image_topic=/camera/image_raw "
     "-p odom_topic=/odom -p 'connect=[\"tcp/192.168.1.5:7447\"]'",

@@ -81,15 +81,42 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-live", action="store_true", help="no live table / progress bar")
 
 
+def _start_viewer(cfg: Any, args: argparse.Namespace) -> tuple[Any, str]:
+    """``run --view``: the viewer as a child process (``neoslam view RUN_DIR``) that attaches as
+    soon as the run's router is up; the run folder is fixed here so that both know it."""
+    import subprocess
+
+    from ..runtime.topology import make_run_dir
+
+    _, run_dir = make_run_dir(cfg, args.out)
+    return subprocess.Popen([sys.executable, "-m", "neoslam_stream.cli", "view", str(run_dir),
+                             "--wait", "120"]), str(run_dir)
+
+
 def cmd_run(args: argparse.Namespace) -> int:
+    import subprocess
+
     from ..launch import RunError, run
 
     cfg = _load(args)
+    viewer = None
+    if getattr(args, "view", False):
+        viewer, args.out = _start_viewer(cfg, args)
     try:
         result = run(cfg, args.out, getattr(args, "resume", None), getattr(args, "map", None))
-    except RunError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
+    except BaseException as exc:
+        if viewer is not None:  # the run did not end normally: no report.json will end the viewer
+            viewer.terminate()
+            viewer.wait(10)
+        if isinstance(exc, RunError):
+            print(f"error: {exc}", file=sys.stderr)
+            return 1
+        raise
+    if viewer is not None:  # it ends by itself once report.json is there and the map is logged
+        try:
+            viewer.wait(60)
+        except subprocess.TimeoutExpired:
+            viewer.terminate()
     print_summary(result.report)
     run_dir = result.run_dir
     if (run_dir / "groundtruth.tum").exists() and (run_dir / "trajectory.tum").exists():
@@ -150,6 +177,22 @@ def cmd_monitor(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_view(args: argparse.Namespace) -> int:
+    from ..viewer import view
+
+    try:
+        st = view(args.run_dir, save=args.save, window=False if (args.save or args.no_window) else None,
+                  duration=args.duration, wait_s=args.wait)
+    except FileNotFoundError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    out = args.save or str(Path(args.run_dir) / "view.rrd")
+    print(f"viewed {args.run_dir}: {st.templates} templates ({st.loop_closures} loop closures), "
+          f"{st.poses} poses, {st.images} camera frames ({st.images_dropped} skipped), "
+          f"rates of {len(st.stages)} stages; recording: {out} (open it with `rerun {out}`)")
+    return 0
+
+
 def cmd_bench_emulate(args: argparse.Namespace) -> int:
     from ..config import load_config
     from ..launch import run
@@ -195,7 +238,22 @@ def build_parser() -> argparse.ArgumentParser:
     p_run.add_argument("--map", metavar="MAP_FILE",
                        help="start from a map exported by `neoslam map export` (long-term deployment)")
     p_run.add_argument("--pipeline", help="pipeline name (neoslam, ratslam, emulated)")
+    p_run.add_argument("--view", action="store_true",
+                       help="show the run live in a rerun viewer (recorded to RUN_DIR/view.rrd)")
     p_run.set_defaults(func=cmd_run)
+
+    p_view = sub.add_parser("view", help="show a run (live or finished) in a rerun viewer",
+                            description="Camera frame, template ids and loop closures, the experience "
+                                        "map with ground truth and odometry, and each stage's rate, "
+                                        "recorded to a rerun file (RUN_DIR/view.rrd unless --save). "
+                                        "Attaches to a running run; shows a finished run's files.")
+    p_view.add_argument("run_dir", help="run folder (a running run's has endpoints.json)")
+    p_view.add_argument("--save", metavar="FILE", help="record to FILE (.rrd) without opening a window")
+    p_view.add_argument("--no-window", action="store_true", help="record to RUN_DIR/view.rrd only")
+    p_view.add_argument("--duration", type=float, help="stop watching a live run after this many seconds")
+    p_view.add_argument("--wait", type=float, default=0.0,
+                        help="wait this many seconds for the run to start (endpoints.json)")
+    p_view.set_defaults(func=cmd_view)
 
     p_mon = sub.add_parser("monitor", help="attach a live table to a running pipeline",
                            description="Show the live stats of a running pipeline.")

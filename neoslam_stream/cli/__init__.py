@@ -27,6 +27,23 @@ def _overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
         over["run"]["live"] = False
     if getattr(args, "checkpoint_every", None):
         over["run"]["checkpoint_every"] = args.checkpoint_every
+    if getattr(args, "stages", None):
+        from ..runtime.parts import parse_stages
+
+        try:
+            over["run"]["stages"] = parse_stages(args.stages)
+        except ValueError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            raise SystemExit(2) from None
+    if getattr(args, "run_id", None):
+        over["run"]["run_id"] = args.run_id
+    bus: dict[str, Any] = {}
+    if getattr(args, "connect", None):
+        bus["connect"] = list(args.connect)
+    if getattr(args, "router_listen", None):
+        bus["router_listen"] = list(args.router_listen)
+    if bus:
+        over["bus"] = bus
     if getattr(args, "source", None):
         over["source"]["kind"] = args.source
     if getattr(args, "source_param", None):
@@ -117,6 +134,11 @@ def cmd_run(args: argparse.Namespace) -> int:
             viewer.wait(60)
         except subprocess.TimeoutExpired:
             viewer.terminate()
+    if "part" in result.report:  # one host's share of a split run: the report is the other host's
+        print(f"run {result.report['run']}: stages {', '.join(result.report['part'])} done here "
+              f"(restarts {result.report['restarts']}); the report is in the run folder of the host "
+              f"with the source (part.json: {result.run_dir / 'part.json'})")
+        return 128 + (result.signal or 2) if result.interrupted else 0
     print_summary(result.report)
     run_dir = result.run_dir
     if (run_dir / "groundtruth.tum").exists() and (run_dir / "trajectory.tum").exists():
@@ -193,6 +215,22 @@ def cmd_view(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_router(args: argparse.Namespace) -> int:
+    import os
+
+    from ..runtime.bus import ZENOH_CONFIG_ENV
+    from ..runtime.parts import serve_router
+
+    if args.zenoh_config:
+        if not Path(args.zenoh_config).is_file():
+            print(f"error: no zenoh config file {args.zenoh_config}", file=sys.stderr)
+            return 2
+        os.environ[ZENOH_CONFIG_ENV] = args.zenoh_config
+    print(f"zenoh router listening on {', '.join(args.listen)} (Ctrl-C to stop)", flush=True)
+    serve_router(args.listen, args.connect, args.duration)
+    return 0
+
+
 def cmd_bench_emulate(args: argparse.Namespace) -> int:
     from ..config import load_config
     from ..launch import run
@@ -238,6 +276,16 @@ def build_parser() -> argparse.ArgumentParser:
     p_run.add_argument("--map", metavar="MAP_FILE",
                        help="start from a map exported by `neoslam map export` (long-term deployment)")
     p_run.add_argument("--pipeline", help="pipeline name (neoslam, ratslam, emulated)")
+    p_run.add_argument("--stages", metavar="A,B|rest",
+                       help="run only these stages here (the rest on other hosts, same --run-id), "
+                            "or 'rest': those no other host runs")
+    p_run.add_argument("--run-id", help="the run's id (key expressions neoslam/<id>/...), shared by its hosts")
+    p_run.add_argument("--connect", action="append", metavar="ENDPOINT",
+                       help="zenoh endpoint (a router) linking this run to other hosts, e.g. "
+                            "tcp/10.0.0.2:7447 (repeatable; bus.connect)")
+    p_run.add_argument("--router-listen", action="append", metavar="ENDPOINT",
+                       help="the supervisor's router also listens here, for the other hosts of the run "
+                            "(repeatable; bus.router_listen)")
     p_run.add_argument("--view", action="store_true",
                        help="show the run live in a rerun viewer (recorded to RUN_DIR/view.rrd)")
     p_run.set_defaults(func=cmd_run)
@@ -262,6 +310,17 @@ def build_parser() -> argparse.ArgumentParser:
     p_mon.add_argument("--connect", action="append", help="zenoh endpoint to connect to (repeatable)")
     p_mon.add_argument("--duration", type=float, help="stop after this many seconds")
     p_mon.set_defaults(func=cmd_monitor)
+
+    p_router = sub.add_parser("router", help="a zenoh router linking the hosts of a split run",
+                              description="A zenoh router (scouting off) that the supervisors of a run "
+                                          "split over hosts connect to (neoslam run --connect).")
+    p_router.add_argument("--listen", action="append", required=True, metavar="ENDPOINT",
+                          help="endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)")
+    p_router.add_argument("--connect", action="append", metavar="ENDPOINT", help="another router (repeatable)")
+    p_router.add_argument("--zenoh-config", metavar="FILE",
+                          help="zenoh json5 file for TLS and access control (as bus.zenoh_config)")
+    p_router.add_argument("--duration", type=float, help="stop after this many seconds")
+    p_router.set_defaults(func=cmd_router)
 
     p_bench = sub.add_parser("bench", help="benchmarks", description="Benchmarks writing JSON reports.")
     bsub = p_bench.add_subparsers(dest="bench", metavar="BENCH")

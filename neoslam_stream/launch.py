@@ -8,7 +8,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from .runtime.topology import RunError, RunResult, run_plan
+from .runtime.parts import run_part
+from .runtime.topology import RunError, RunResult
 
 __all__ = ["RunError", "RunResult", "run"]
 
@@ -24,4 +25,5 @@ def run(cfg: Any, run_dir: str | Path | None = None, resume: str | Path | None =
         plan = build_plan(cfg)
     except ValueError as exc:
         raise RunError(str(exc)) from None
-    return run_plan(cfg, plan, run_dir, resume, map_path)
+    # run_part: all of the plan, or this host's share of a run split over hosts (run.stages)
+    return run_part(cfg, plan, run_dir, resume, map_path)

@@ -44,11 +44,17 @@ RUN = {
     "neoslam map info site.neoslam",
     "neoslam config show default",
     "neoslam config show irat2011",
+    "neoslam view runs/monday --save monday.rrd",
 }
 VALIDATE = {
     "neoslam run",
     "neoslam run -p laps_cw=3 -p laps_ccw=2 -p seed=7",
     "neoslam run -c my.yaml",
+    "neoslam run --view",
+    "neoslam run --stages A,B --run-id field1 --connect tcp/10.0.0.5:7447",
+    "neoslam run --stages rest --run-id field1 --connect tcp/10.0.0.5:7447",
+    "neoslam run --stages rest --run-id field1 --router-listen tcp/0.0.0.0:7447",
+    "neoslam run --stages A,B --run-id field1 --connect tcp/ROBOT:7447",
     "neoslam run -c irat2011 -p path=data/irat_aus_28112011.bag",
     "neoslam run --realtime --source zenoh-ros2 -p image_topic=/camera/image_raw "
     "-p odom_topic=/odom -p 'connect=[\"tcp/192.168.1.5:7447\"]'",
@@ -77,6 +83,7 @@ ELSEWHERE = {
     "zenoh-bridge-ros2dds": "zenoh's bridge, run on the robot (not part of this package)",
     "ros2": "a ROS 2 installation's command (rmw_zenoh's router, foxglove_bridge), run on the ROS 2 side",
     "RMW_IMPLEMENTATION=rmw_zenoh_cpp": "RViz with rmw_zenoh, run on the ROS 2 side",
+    "neoslam router": "a zenoh router that runs until Ctrl-C; tests/test_parts.py runs one on loopback",
     "pip install .": "tests/test_packaging.py installs the wheel in a fresh venv and runs it",
     "pip install torch==2.13.0": "the Makefile's setup step, run by every `make run` / `make test`",
 }

@@ -39,6 +39,23 @@ def _overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
             over["ros2_out"]["format"] = args.ros2_out
         if getattr(args, "ros2_connect", None):
             over["ros2_out"]["connect"] = list(args.ros2_connect)
+    if getattr(args, "stages", None):
+        from ..runtime.parts import parse_stages
+
+        try:
+            over["run"]["stages"] = parse_stages(args.stages)
+        except ValueError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            raise SystemExit(2) from None
+    if getattr(args, "run_id", None):
+        over["run"]["run_id"] = args.run_id
+    bus: dict[str, Any] = {}
+    if getattr(args, "connect", None):
+        bus["connect"] = list(args.connect)
+    if getattr(args, "router_listen", None):
+        bus["router_listen"] = list(args.router_listen)
+    if bus:
+        over["bus"] = bus
     if getattr(args, "source", None):
         over["source"]["kind"] = args.source
     if getattr(args, "source_param", None):
@@ -93,7 +110,21 @@ def add_run_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-live", action="store_true", help="no live table / progress bar")
 
 
+def _start_viewer(cfg: Any, args: argparse.Namespace) -> tuple[Any, str]:
+    """``run --view``: the viewer as a child process (``neoslam view RUN_DIR``) that attaches as
+    soon as the run's router is up; the run folder is fixed here so that both know it."""
+    import subprocess
+
+    from ..runtime.topology import make_run_dir
+
+    _, run_dir = make_run_dir(cfg, args.out)
+    return subprocess.Popen([sys.executable, "-m", "neoslam_stream.cli", "view", str(run_dir),
+                             "--wait", "120"]), str(run_dir)
+
+
 def cmd_run(args: argparse.Namespace) -> int:
+    import subprocess
+
     from ..launch import RunError, run
 
     if getattr(args, "oracle_templates", False) and getattr(args, "pipeline", None) not in (None, "oracle"):
@@ -101,11 +132,29 @@ def cmd_run(args: argparse.Namespace) -> int:
               f"with --pipeline {args.pipeline}", file=sys.stderr)
         return 2
     cfg = _load(args)
+    viewer = None
+    if getattr(args, "view", False):
+        viewer, args.out = _start_viewer(cfg, args)
     try:
         result = run(cfg, args.out, getattr(args, "resume", None), getattr(args, "map", None))
-    except RunError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
+    except BaseException as exc:
+        if viewer is not None:  # the run did not end normally: no report.json will end the viewer
+            viewer.terminate()
+            viewer.wait(10)
+        if isinstance(exc, RunError):
+            print(f"error: {exc}", file=sys.stderr)
+            return 1
+        raise
+    if viewer is not None:  # it ends by itself once report.json is there and the map is logged
+        try:
+            viewer.wait(60)
+        except subprocess.TimeoutExpired:
+            viewer.terminate()
+    if "part" in result.report:  # one host's share of a split run: the report is the other host's
+        print(f"run {result.report['run']}: stages {', '.join(result.report['part'])} done here "
+              f"(restarts {result.report['restarts']}); the report is in the run folder of the host "
+              f"with the source (part.json: {result.run_dir / 'part.json'})")
+        return 128 + (result.signal or 2) if result.interrupted else 0
     print_summary(result.report)
     run_dir = result.run_dir
     if cfg.run.pipeline == "oracle" and not (run_dir / "groundtruth.tum").exists():
@@ -195,6 +244,38 @@ def cmd_monitor(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_view(args: argparse.Namespace) -> int:
+    from ..viewer import view
+
+    try:
+        st = view(args.run_dir, save=args.save, window=False if (args.save or args.no_window) else None,
+                  duration=args.duration, wait_s=args.wait)
+    except FileNotFoundError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    out = args.save or str(Path(args.run_dir) / "view.rrd")
+    print(f"viewed {args.run_dir}: {st.templates} templates ({st.loop_closures} loop closures), "
+          f"{st.poses} poses, {st.images} camera frames ({st.images_dropped} skipped), "
+          f"rates of {len(st.stages)} stages; recording: {out} (open it with `rerun {out}`)")
+    return 0
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    import os
+
+    from ..runtime.bus import ZENOH_CONFIG_ENV
+    from ..runtime.parts import serve_router
+
+    if args.zenoh_config:
+        if not Path(args.zenoh_config).is_file():
+            print(f"error: no zenoh config file {args.zenoh_config}", file=sys.stderr)
+            return 2
+        os.environ[ZENOH_CONFIG_ENV] = args.zenoh_config
+    print(f"zenoh router listening on {', '.join(args.listen)} (Ctrl-C to stop)", flush=True)
+    serve_router(args.listen, args.connect, args.duration)
+    return 0
+
+
 def cmd_bench_emulate(args: argparse.Namespace) -> int:
     from ..config import load_config
     from ..launch import run
@@ -254,7 +335,32 @@ def build_parser() -> argparse.ArgumentParser:
                             "of rmw_zenoh, or both (docs/ros2.md)")
     p_run.add_argument("--ros2-connect", action="append", metavar="ENDPOINT",
                        help="zenoh endpoint of the ROS 2 side's router, e.g. tcp/localhost:7447 (repeatable)")
+    p_run.add_argument("--stages", metavar="A,B|rest",
+                       help="run only these stages here (the rest on other hosts, same --run-id), "
+                            "or 'rest': those no other host runs")
+    p_run.add_argument("--run-id", help="the run's id (key expressions neoslam/<id>/...), shared by its hosts")
+    p_run.add_argument("--connect", action="append", metavar="ENDPOINT",
+                       help="zenoh endpoint (a router) linking this run to other hosts, e.g. "
+                            "tcp/10.0.0.2:7447 (repeatable; bus.connect)")
+    p_run.add_argument("--router-listen", action="append", metavar="ENDPOINT",
+                       help="the supervisor's router also listens here, for the other hosts of the run "
+                            "(repeatable; bus.router_listen)")
+    p_run.add_argument("--view", action="store_true",
+                       help="show the run live in a rerun viewer (recorded to RUN_DIR/view.rrd)")
     p_run.set_defaults(func=cmd_run)
+
+    p_view = sub.add_parser("view", help="show a run (live or finished) in a rerun viewer",
+                            description="Camera frame, template ids and loop closures, the experience "
+                                        "map with ground truth and odometry, and each stage's rate, "
+                                        "recorded to a rerun file (RUN_DIR/view.rrd unless --save). "
+                                        "Attaches to a running run; shows a finished run's files.")
+    p_view.add_argument("run_dir", help="run folder (a running run's has endpoints.json)")
+    p_view.add_argument("--save", metavar="FILE", help="record to FILE (.rrd) without opening a window")
+    p_view.add_argument("--no-window", action="store_true", help="record to RUN_DIR/view.rrd only")
+    p_view.add_argument("--duration", type=float, help="stop watching a live run after this many seconds")
+    p_view.add_argument("--wait", type=float, default=0.0,
+                        help="wait this many seconds for the run to start (endpoints.json)")
+    p_view.set_defaults(func=cmd_view)
 
     p_mon = sub.add_parser("monitor", help="attach a live table to a running pipeline",
                            description="Show the live stats of a running pipeline.")
@@ -263,6 +369,17 @@ def build_parser() -> argparse.ArgumentParser:
     p_mon.add_argument("--connect", action="append", help="zenoh endpoint to connect to (repeatable)")
     p_mon.add_argument("--duration", type=float, help="stop after this many seconds")
     p_mon.set_defaults(func=cmd_monitor)
+
+    p_router = sub.add_parser("router", help="a zenoh router linking the hosts of a split run",
+                              description="A zenoh router (scouting off) that the supervisors of a run "
+                                          "split over hosts connect to (neoslam run --connect).")
+    p_router.add_argument("--listen", action="append", required=True, metavar="ENDPOINT",
+                          help="endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)")
+    p_router.add_argument("--connect", action="append", metavar="ENDPOINT", help="another router (repeatable)")
+    p_router.add_argument("--zenoh-config", metavar="FILE",
+                          help="zenoh json5 file for TLS and access control (as bus.zenoh_config)")
+    p_router.add_argument("--duration", type=float, help="stop after this many seconds")
+    p_router.set_defaults(func=cmd_router)
 
     p_bench = sub.add_parser("bench", help="benchmarks", description="Benchmarks writing JSON reports.")
     bsub = p_bench.add_subparsers(dest="bench", metavar="BENCH")

@@ -34,6 +34,9 @@ class BusConfig(Strict):
     host: str = "127.0.0.1"
     listen: list[str] = Field(default_factory=list)
     connect: list[str] = Field(default_factory=list)
+    #: endpoints on which the supervisor's router alone also listens: the rendezvous of a run split
+    #: over several hosts (docs/runtime.md "Several hosts"); every other process stays on `host`
+    router_listen: list[str] = Field(default_factory=list)
     #: zenoh shared memory for large payloads. Off by default: at camera rates its gain per
     #: message is small, but its first use in each process stalls the pipeline, which lost frames
     #: at the start of real-time runs (measurements: docs/performance.md)
@@ -115,6 +118,11 @@ class RunSection(Strict):
     log_level: str = "WARNING"
     #: save every stage's state every N source frames (0 = never); see docs/reliability.md
     checkpoint_every: int = Field(0, ge=0)
+    #: the stage workers this host runs when a run is split over several hosts (None: all;
+    #: ["rest"]: those no other host of the run announced); see runtime/parts.py
+    stages: list[str] | None = None
+    #: the run id (key expressions neoslam/<run_id>/...): the parts of a split run must share it
+    run_id: str | None = Field(None, pattern=r"^[A-Za-z0-9_-]{1,64}$")
 
 
 class RunConfig(Strict):

@@ -108,13 +108,18 @@ class Supervisor:
         self.cfg = cfg
         self.plan = plan
         self.name, self.run_dir = make_run_dir(cfg, run_dir)
-        self.run_id = f"r{secrets.token_hex(4)}"
+        # a run split over several hosts (runtime/parts.py) shares one id, given to every part
+        self.run_id = getattr(cfg.run, "run_id", None) or f"r{secrets.token_hex(4)}"
         #: the control topic's secret: only this supervisor's commands are obeyed (bus.ControlGate)
         self.control_token = secrets.token_hex(16)
         self.final = FinalTracker(entry_stages=set(plan.entry_stages))
         self.lossless = cfg.run.mode == "lossless"
         self.ctx = mp.get_context("spawn")
         self.groups = group_workers(self.plan, cfg.run.topology)
+        #: the workers this supervisor starts (all but where other hosts run some: runtime/parts.py),
+        #: and whether it runs the source and the monitor
+        self.hosted: list[str] = list(self.groups)
+        self.is_primary = True
         self.procs: dict[str, Any] = {}
         self.restarts: dict[str, int] = {}
         self.interrupts = 0
@@ -236,7 +241,7 @@ class Supervisor:
                 return
             for n in names:
                 p = self.procs.get(n)
-                if p is not None and not p.is_alive():
+                if p is not None and not p.is_alive() and not self.interrupts:  # Ctrl-C: no restart
                     if n in self.groups and self.restarts.get(n, 0) < self.cfg.run.max_restarts:
                         self._restart(n, p.exitcode)
                         continue
@@ -271,7 +276,8 @@ class Supervisor:
         if self.cfg.bus.zenoh_config:  # every process of the run (spawned children inherit it)
             os.environ[ZENOH_CONFIG_ENV] = self.cfg.bus.zenoh_config
         # a router, so that tools attaching in client mode (`neoslam monitor`) reach every process
-        self.session = open_session([self.endpoints["supervisor"], *self.cfg.bus.listen],
+        self.session = open_session([self.endpoints["supervisor"], *self.cfg.bus.listen,
+                                     *self.cfg.bus.router_listen],
                                     list(self.cfg.bus.connect), self.cfg.bus.shm, mode="router")
         # written once the router listens: whoever reads it can connect at once
         tmp = self.run_dir / "endpoints.json.tmp"
@@ -288,13 +294,17 @@ class Supervisor:
             (self.run_dir / name).unlink(missing_ok=True)
         interrupted = False
         try:
-            self._start("monitor", monitor_entry, self.monitor_spec())
-            self._wait_ready(["monitor"], 60.0)
-            for w in self.groups:
+            self._select_hosted()
+            if self.is_primary:
+                self._start("monitor", monitor_entry, self.monitor_spec())
+                self._wait_ready(["monitor"], 60.0)
+            for w in self.hosted:
                 self._start(w, worker_entry, self.worker_spec(w))
+            # every worker of the run, those of other hosts included (their tokens come through the router)
             self._wait_ready(list(self.groups), self.cfg.run.startup_timeout)
-            start_frame = self._resume_frame()
-            self._start("source", source_entry, self.source_spec(start_frame))
+            if self.is_primary:
+                start_frame = self._resume_frame()
+                self._start("source", source_entry, self.source_spec(start_frame))
             interrupted = self._supervise()
         except RunError:
             if not self.interrupts:
@@ -312,6 +322,9 @@ class Supervisor:
             raise RunError(f"the source failed: {self.source_failure} (report: {self.run_dir / 'report.json'})")
         return RunResult(self.run_dir, report, interrupted, dict(self.restarts),
                          self.last_signal if interrupted else None)
+
+    def _select_hosted(self) -> None:
+        """Which workers this supervisor starts; all of them here (runtime/parts.py overrides it)."""
 
     def _resume_frame(self) -> int:
         return self.resume_cut or 0
@@ -355,7 +368,7 @@ class Supervisor:
                 return False
 
     def _restart_crashed(self) -> None:
-        for w in self.groups:
+        for w in self.hosted:
             p = self.procs.get(w)
             if p is None or p.is_alive():
                 continue
@@ -427,9 +440,12 @@ class Supervisor:
                 if p.is_alive():
                     p.kill()
                     p.join(2)
+            self._wait_remote_stopped([n for n in names if n in self.groups and n not in self.hosted],
+                                      deadline)
 
         try:
-            workers = [w for w in self.groups if w in self.procs]
+            # the primary of a run split over hosts stops the other hosts' workers too, in order
+            workers = [w for w in self.groups if w in self.procs or (self.is_primary and w not in self.hosted)]
             # processes that host a watcher (the recorder) go last: what the others publish up to
             # their end (a stage's last frame, the pose cells' final actions) is still recorded
             watchers = [w for w in workers if any(s.observer for s in self.groups[w])]
@@ -448,6 +464,13 @@ class Supervisor:
                 if p.is_alive():
                     p.kill()
                     p.join(2)
+
+    def _wait_remote_stopped(self, names: list[str], deadline: float) -> None:
+        """Wait until the workers ``names`` of other hosts have withdrawn their liveliness tokens."""
+        while names and time.monotonic() < deadline:
+            if not set(names) & self._alive_tokens():
+                return
+            time.sleep(0.2)
 
     def _complete_report(self, interrupted: bool) -> dict[str, Any]:
         """report.json: the monitor's (when it wrote one in this run), with every figure the

@@ -103,7 +103,7 @@ def sustainable(runs: list[dict[str, Any]], topology: str) -> float | None:
     """Highest swept rate with loss below SUSTAINABLE_LOSS such that no lower rate failed."""
     best = None
     for r in sorted((r for r in _longest(runs) if r["topology"] == topology), key=lambda r: r["rate"]):
-        if r["loss"] >= SUSTAINABLE_LOSS:
+        if r["loss"] is None or r["loss"] >= SUSTAINABLE_LOSS:  # an unmeasured loss sustains nothing
             break
         best = r["rate"]
     return best
@@ -237,7 +237,7 @@ def plot(result: dict[str, Any], path: Path) -> None:
     fig, axes = plt.subplots(1, 3 if sc else 2, figsize=(15 if sc else 10, 4))
     for topo in sorted({r["topology"] for r in result["runs"]}):
         rs = sorted((r for r in result["runs"] if r["topology"] == topo), key=lambda r: r["rate"])
-        axes[0].plot([r["rate"] for r in rs], [100 * r["loss"] for r in rs], "o-", label=topo)
+        axes[0].plot([r["rate"] for r in rs], [float("nan") if r["loss"] is None else 100 * r["loss"] for r in rs], "o-", label=topo)
         axes[1].plot([r["rate"] for r in rs], [r["f_out"] for r in rs], "o-", label=topo)
     axes[0].set(xlabel="input rate (FPS)", ylabel="frame loss (%)", title="Frame loss")
     axes[1].set(xlabel="input rate (FPS)", ylabel="processed frames per second", title="Output rate")

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -18,7 +19,7 @@ from neoslam_stream.config import load_config
 from neoslam_stream.nodes.pipelines import build_plan
 from neoslam_stream.runtime.bus import free_port
 from neoslam_stream.runtime.parts import PartSupervisor, check_selection, parse_stages
-from neoslam_stream.runtime.topology import RunError, group_workers
+from neoslam_stream.runtime.topology import CONTROL_TOKEN_ENV, RunError, group_workers
 
 FRAMES = 30
 TINY = {"run": {"pipeline": "neoslam", "topology": "pipeline", "mode": "lossless", "live": False,
@@ -51,7 +52,19 @@ def test_a_part_needs_a_run_id_and_the_pipeline_topology(tmp_path):
         PartSupervisor(cfg, build_plan(cfg), tmp_path / "b")
 
 
-def test_only_the_supervisors_router_links_to_other_hosts(tmp_path):
+def test_a_part_needs_the_runs_control_secret(tmp_path, monkeypatch):
+    # the source's host stops the other hosts' workers with control messages, which workers obey
+    # only with the run's secret: without a shared one the split run could never end cleanly
+    monkeypatch.delenv(CONTROL_TOKEN_ENV, raising=False)
+    cfg = load_config("default", {"run": {"stages": ["A"], "run_id": "x3"}})
+    with pytest.raises(RunError, match=CONTROL_TOKEN_ENV):
+        PartSupervisor(cfg, build_plan(cfg), tmp_path / "a")
+    monkeypatch.setenv(CONTROL_TOKEN_ENV, "s3cret")
+    assert PartSupervisor(cfg, build_plan(cfg), tmp_path / "b").control_token == "s3cret"
+
+
+def test_only_the_supervisors_router_links_to_other_hosts(tmp_path, monkeypatch):
+    monkeypatch.setenv(CONTROL_TOKEN_ENV, "s3cret")
     # bus.connect names the router between hosts: the supervisor's session connects to it, no
     # other process does (zenoh routes between peers of linked routers, not between peers that
     # merely share a router), and no process links to another host's processes
@@ -71,7 +84,8 @@ def _start(tmp_path: Path, name: str, *args: str) -> subprocess.Popen:
     cfg.write_text(yaml.safe_dump(TINY))
     return subprocess.Popen([sys.executable, "-m", "neoslam_stream.cli", "run", "-c", str(cfg),
                              "--out", str(tmp_path / name), *args],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            env={**os.environ, CONTROL_TOKEN_ENV: "the-hosts-shared-secret"})
 
 
 @pytest.mark.zenoh

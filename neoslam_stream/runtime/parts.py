@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from .bus import key_for, open_session
-from .topology import PipelinePlan, RunError, RunResult, Supervisor, run_plan
+from .topology import CONTROL_TOKEN_ENV, PipelinePlan, RunError, RunResult, Supervisor, run_plan
 
 log = logging.getLogger("neoslam.parts")
 
@@ -81,6 +81,12 @@ class PartSupervisor(Supervisor):
             raise RunError("--stages needs the pipeline topology (one process per stage)")
         if not getattr(cfg.run, "run_id", None):
             raise RunError("--stages needs --run-id: every host of the run must use the same one")
+        if not os.environ.get(CONTROL_TOKEN_ENV):
+            # the source's host stops the other hosts' workers with control messages, which every
+            # worker obeys only with the run's secret (bus.ControlGate): all hosts must share it
+            raise RunError(f"--stages needs the run's control secret, the same on every host: set "
+                           f"{CONTROL_TOKEN_ENV} (e.g. to the output of `openssl rand -hex 16`) in the "
+                           f"environment of every host's `neoslam run`")
         super().__init__(cfg, plan, run_dir, resume, map_path)
         self.stages = list(cfg.run.stages)
         self.hosted = check_selection(self.groups, self.stages)

@@ -47,6 +47,10 @@ from .procs import monitor_entry, source_entry, worker_entry
 from .source_runner import SourceRunSpec, SourceSpec
 from .worker import WorkerSpec
 
+#: environment variable holding the control secret shared by every host of a split run: an
+#: environment variable, not a flag, so that other local users do not read it in the process table
+CONTROL_TOKEN_ENV = "NEOSLAM_CONTROL_TOKEN"
+
 log = logging.getLogger("neoslam.topology")
 
 
@@ -110,8 +114,9 @@ class Supervisor:
         self.name, self.run_dir = make_run_dir(cfg, run_dir)
         # a run split over several hosts (runtime/parts.py) shares one id, given to every part
         self.run_id = getattr(cfg.run, "run_id", None) or f"r{secrets.token_hex(4)}"
-        #: the control topic's secret: only this supervisor's commands are obeyed (bus.ControlGate)
-        self.control_token = secrets.token_hex(16)
+        #: the control topic's secret: only this supervisor's commands are obeyed (bus.ControlGate);
+        #: the hosts of a split run share one through CONTROL_TOKEN_ENV (runtime/parts.py)
+        self.control_token = os.environ.get(CONTROL_TOKEN_ENV) or secrets.token_hex(16)
         self.final = FinalTracker(entry_stages=set(plan.entry_stages))
         self.lossless = cfg.run.mode == "lossless"
         self.ctx = mp.get_context("spawn")

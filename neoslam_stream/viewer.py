@@ -55,7 +55,7 @@ def _rerun() -> Any:
     try:
         import rerun as rr
     except ImportError as exc:  # a clear line instead of a traceback
-        raise SystemExit(f"error: the viewer needs rerun-sdk ({exc}); pip install rerun-sdk") from None
+        raise SystemExit(f"error: the viewer needs rerun-sdk ({exc}); pip install 'neoslam-stream[view]' (or rerun-sdk)") from None
     return rr
 
 

@@ -85,6 +85,7 @@ ELSEWHERE = {
     "ros2": "a ROS 2 installation's command (rmw_zenoh's router, foxglove_bridge), run on the ROS 2 side",
     "RMW_IMPLEMENTATION=rmw_zenoh_cpp": "RViz with rmw_zenoh, run on the ROS 2 side",
     "neoslam router": "a zenoh router that runs until Ctrl-C; tests/test_parts.py runs one on loopback",
+    "pip install '.[view]'": "the Makefile's setup installs the [test] extra, which holds the viewer's rerun-sdk",
     "pip install .": "tests/test_packaging.py installs the wheel in a fresh venv and runs it",
     "pip install torch==2.13.0": "the Makefile's setup step, run by every `make run` / `make test`",
 }

@@ -116,7 +116,8 @@ def test_view_skips_a_damaged_file_and_shows_the_rest(tmp_path, caplog):
     (tmp_path / "run" / "trajectory.tum").write_text("0.0 1 2\n")  # too few columns
     out = tmp_path / "out.rrd"
     assert main(["view", str(tmp_path / "run"), "--save", str(out)]) == 0
-    assert "trajectory.tum not shown" in caplog.text
+    # the damaged row is skipped with its file and line named (tum.read_tum), the rest is shown
+    assert "trajectory.tum line 1" in caplog.text and "row skipped" in caplog.text
     rec = read_rrd(out)
     assert "/map/trajectory" not in rec
     assert len(rec["/template/id"]) == len(want["frames"])

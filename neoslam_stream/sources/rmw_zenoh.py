@@ -29,6 +29,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from .imaging import DEFAULT_MAX_SIDE
 from .zenoh_camera import ZenohRos2CameraSource, _Live
 
 log = logging.getLogger("neoslam.sources.rmw_zenoh")
@@ -195,6 +196,8 @@ class RmwZenohConfig(BaseModel):
     timeout_s: float | None = Field(None, gt=0)
     #: warn (once) when nothing arrived within this many seconds of the start
     warn_after_s: float = Field(5.0, gt=0)
+    #: frames whose long side exceeds this many pixels are resized (sources/imaging.py)
+    max_side: int | None = Field(DEFAULT_MAX_SIDE, ge=16)
 
 
 class RmwZenohCameraSource(ZenohRos2CameraSource):
@@ -202,18 +205,19 @@ class RmwZenohCameraSource(ZenohRos2CameraSource):
 
     Parameters (:class:`RmwZenohConfig`): ``image_topic``, ``odom_topic`` (ROS 2 topic names),
     ``domain_id`` (``ROS_DOMAIN_ID``, 0), ``connect`` / ``listen`` zenoh endpoints (rmw_zenoh's
-    router: ``tcp/<host>:7447``), ``mode``, ``capacity``, ``timeout_s``, ``warn_after_s``.
+    router: ``tcp/<host>:7447``), ``mode``, ``capacity``, ``timeout_s``, ``warn_after_s``,
+    ``max_side`` (larger frames are resized; 16-bit encodings become 8-bit, as for ``zenoh-ros2``).
     """
 
     def __init__(self, image_topic: str, odom_topic: str | None = None, domain_id: int = 0,
                  connect: list[str] | None = None, listen: list[str] | None = None, mode: str = "peer",
                  capacity: int = 2, timeout_s: float | None = None, warn_after_s: float = 5.0,
-                 **unknown: Any) -> None:
+                 max_side: int | None = DEFAULT_MAX_SIDE, **unknown: Any) -> None:
         # the signature names the parameters (checked by `neoslam run`'s plan); the model validates
         # their values, and the names nobody knows, in one message
         params = {"image_topic": image_topic, "odom_topic": odom_topic, "domain_id": domain_id, "connect": connect,
                   "listen": listen, "mode": mode, "capacity": capacity, "timeout_s": timeout_s,
-                  "warn_after_s": warn_after_s, **unknown}
+                  "warn_after_s": warn_after_s, "max_side": max_side, **unknown}
         try:
             cfg = RmwZenohConfig(**params)
         except ValidationError as exc:
@@ -226,6 +230,7 @@ class RmwZenohCameraSource(ZenohRos2CameraSource):
             self.keys["odom"] = topic_key(cfg.domain_id, cfg.odom_topic, dds_type_name(ODOM_TYPE))
         _Live.__init__(self, cfg.connect, cfg.listen, cfg.capacity, cfg.timeout_s, cfg.mode)
         self.image_type = ""
+        self.max_side = cfg.max_side
         self._odom: tuple[float, float, float] | None = None
         self._acc = [0.0, 0.0]
         self._lock = threading.Lock()

@@ -200,39 +200,87 @@ def test_recorder_writes_outputs_mcap_readable_by_the_mcap_reader(tmp_path):
     assert [m.data for _, _, m, _ in msgs] == [conv.serialize(o) for o in expected]
 
 
-def test_a_run_publishes_ros2_messages_and_writes_outputs_mcap(tmp_path):
-    """``neoslam run --ros2-out both --ros2-connect EP``: a ROS 2 side listening on EP (a router in
-    real life, a test session here) gets the poses live, and the run folder holds outputs.mcap."""
+def test_a_run_from_an_rmw_zenoh_camera_to_ros2_and_outputs_mcap(tmp_path):
+    """ROS 2 both ways in one real run: ``neoslam run --source rmw-zenoh ... --ros2-out both
+    --ros2-connect EP``. A test session plays an rmw_zenoh robot (camera and odometry keys with
+    attachments, sequence numbers 4 to 6 of the camera never sent) and the ROS 2 side listening on
+    EP (a router in real life) gets the poses live; the run folder holds outputs.mcap."""
     import subprocess
     import sys
 
-    ep = f"tcp/127.0.0.1:{free_port()}"
-    ros_side = open_session(listen=[ep])
+    from neoslam_stream.sources import cdr
+    from neoslam_stream.sources.rmw_zenoh import Attachment, dds_type_name, topic_key
+    from neoslam_stream.sources.synthetic import SyntheticWorldSource
+
+    ros_ep, cam_ep = f"tcp/127.0.0.1:{free_port()}", f"tcp/127.0.0.1:{free_port()}"
+    ros_side = open_session(listen=[ros_ep])
     bridged, s1 = _collector(ros_side, "slam/**")
     rmw, s2 = _collector(ros_side, "0/slam/**")
     run_dir = tmp_path / "run"
     cfg = tmp_path / "cfg.yaml"
     cfg.write_text("ros2_out:\n  prefix: /slam\n  map_period_s: 0.5\n")
-    proc = subprocess.run([sys.executable, "-m", "neoslam_stream.cli", "run", "-c", str(cfg), "--pipeline", "ratslam",
-                           "--max-frames", "40", "--lossless", "--no-live", "--ros2-out", "both",
-                           "--ros2-connect", ep, "--out", str(run_dir)],
-                          capture_output=True, text=True, timeout=300)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "neoslam_stream.cli", "run", "-c", str(cfg), "--pipeline", "ratslam", "--realtime",
+         "--no-live", "--source", "rmw-zenoh", "-p", "image_topic=/cam/image_raw", "-p", "odom_topic=/odom",
+         "-p", "domain_id=5", "-p", f'listen=["{cam_ep}"]', "-p", "capacity=64", "-p", "timeout_s=3",
+         "--ros2-out", "both", "--ros2-connect", ros_ep, "--out", str(run_dir)],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    # the robot: a synthetic drive, 43 frames at 10 Hz, each with its odometry just before it
+    robot_msgs = Ros2Messages(frame_id="odom", distro="jazzy")  # builds the robot's messages
+    ts = robot_msgs.ts
+    robot = open_session(connect=[cam_ep])
+    img_key = topic_key(5, "/cam/image_raw", dds_type_name("sensor_msgs/msg/Image"),
+                        ts.hash_rihs01("sensor_msgs/msg/Image"))
+    odom_key = topic_key(5, "/odom", dds_type_name("nav_msgs/msg/Odometry"),
+                         ts.hash_rihs01("nav_msgs/msg/Odometry"))
+    cam = robot.declare_publisher(img_key)
+    odo = robot.declare_publisher(odom_key)
+    deadline = time.monotonic() + 240
+    while not (cam.matching_status.matching and odo.matching_status.matching):
+        assert time.monotonic() < deadline and proc.poll() is None, "the run's source never subscribed"
+        time.sleep(0.1)
+    time.sleep(0.5)
+    T = ts.types
+    gid_cam, gid_odo = bytes(range(16)), bytes(range(1, 17))
+    for sf in SyntheticWorldSource(frames=43, width=160, height=96):
+        t = 50.0 + sf.frame / 10
+        v, w, _ = sf.odom
+        conv = robot_msgs
+        od = conv._odometry(t - 0.001, 0.0, 0.0, 0.0)
+        od.twist.twist.linear.x, od.twist.twist.angular.z = float(v), float(w)
+        odo.put(cdr.serialize(od, "nav_msgs/msg/Odometry"),
+                attachment=Attachment(sf.frame + 1, int(t * 1e9), gid_odo).encode())
+        if sf.frame + 1 not in (4, 5, 6):  # lost on the way
+            h, wd = sf.image.shape[:2]
+            img = T["sensor_msgs/msg/Image"](header=conv._header(t), height=h, width=wd, encoding="rgb8",
+                                             is_bigendian=0, step=wd * 3, data=sf.image.reshape(-1))
+            cam.put(cdr.serialize(img, "sensor_msgs/msg/Image"),
+                    attachment=Attachment(sf.frame + 1, int(t * 1e9), gid_cam).encode())
+        time.sleep(0.1)
+    out, _ = proc.communicate(timeout=300)
     time.sleep(0.3)
     s1.undeclare()
     s2.undeclare()
     ros_side.close()
-    assert proc.returncode == 0, proc.stdout + proc.stderr
+    robot.close()
+    assert proc.returncode == 0, out
+    report = json.loads((run_dir / "report.json").read_text())
+    assert report["source"]["lost_before_source"] == 3 and report["source"]["received"] == 40, out[-3000:] + json.dumps(report["source"])
+    assert "lost before the source: 3 frames" in out
     rows = [list(map(float, line.split())) for line in (run_dir / "trajectory.tum").read_text().splitlines()]
     assert len(rows) == 40
     conv = Ros2Messages(prefix="/slam")
     dec = _decoder(conv, "nav_msgs/msg/Odometry")
     live = [dec(p) for k, p, _ in bridged if k == "slam/odom"]
-    assert len(live) == len(rows)  # lossless run, loopback, a subscriber that keeps up
+    assert len(live) == len(rows)  # loopback, a subscriber that keeps up
     assert len([k for k, _, _ in rmw if k.startswith("0/slam/odom/nav_msgs::msg::dds_::Odometry_/RIHS01_")]) == len(rows)
     for od, r in zip(live, rows, strict=True):
         assert od.header.stamp.sec + od.header.stamp.nanosec * 1e-9 == pytest.approx(r[0], abs=1e-6)
         assert (od.pose.pose.position.x, od.pose.pose.position.y) == pytest.approx((r[1], r[2]), abs=1e-6)
         assert (od.pose.pose.orientation.z, od.pose.pose.orientation.w) == pytest.approx((r[6], r[7]), abs=1e-8)
+    # the robot drove about 0.3 m/s for 4.2 s: the map's last pose is that far from the start,
+    # so the odometry of the lost frames was not lost
+    assert math.hypot(rows[-1][1], rows[-1][2]) == pytest.approx(0.3 * 4.2, rel=0.15)
     assert any(k == "slam/map_markers" for k, _, _ in bridged)
     # outputs.mcap: the same poses, with their schemas, read back by the mcap reader
     with open(run_dir / MCAP, "rb") as fh:

@@ -178,9 +178,16 @@ def test_frames_odometry_and_loss_from_an_rmw_zenoh_publisher():
 
 def test_silence_is_warned_with_the_key_expressions(caplog):
     caplog.set_level(logging.WARNING, logger="neoslam.sources.rmw_zenoh")
-    src = RmwZenohCameraSource(image_topic="/cam", odom_topic="/odom", domain_id=7, warn_after_s=0.3, timeout_s=0.8)
-    assert list(src) == []
+    # timeout_s counts from the first frame: before it, only close() ends the stream
+    src = RmwZenohCameraSource(image_topic="/cam", odom_topic="/odom", domain_id=7, warn_after_s=0.3, timeout_s=0.2)
+    got = []
+    th = threading.Thread(target=lambda: got.extend(src), daemon=True)
+    th.start()
+    time.sleep(1.0)
+    assert th.is_alive()
     src.close()
+    th.join(5)
+    assert not th.is_alive() and got == []
     text = " ".join(r.getMessage() for r in caplog.records)
     assert "7/cam/*/*" in text and "7/odom/nav_msgs::msg::dds_::Odometry_/*" in text and "7447" in text
 

@@ -205,8 +205,9 @@ class RmwZenohCameraSource(ZenohRos2CameraSource):
 
     Parameters (:class:`RmwZenohConfig`): ``image_topic``, ``odom_topic`` (ROS 2 topic names),
     ``domain_id`` (``ROS_DOMAIN_ID``, 0), ``connect`` / ``listen`` zenoh endpoints (rmw_zenoh's
-    router: ``tcp/<host>:7447``), ``mode``, ``capacity``, ``timeout_s``, ``warn_after_s``,
-    ``max_side`` (larger frames are resized; 16-bit encodings become 8-bit, as for ``zenoh-ros2``).
+    router: ``tcp/<host>:7447``), ``mode``, ``capacity``, ``timeout_s`` (the stream ends after that
+    long without a frame, counted from the first frame), ``warn_after_s``, ``max_side`` (larger
+    frames are resized; 16-bit encodings become 8-bit, as for ``zenoh-ros2``).
     """
 
     def __init__(self, image_topic: str, odom_topic: str | None = None, domain_id: int = 0,
@@ -242,6 +243,14 @@ class RmwZenohCameraSource(ZenohRos2CameraSource):
             self._subs.append(self._session.declare_subscriber(self.keys["odom"], self._on_rmw_odom))
         self._watch = threading.Thread(target=self._warn_if_silent, name="rmw-zenoh-watch", daemon=True)
         self._watch.start()
+
+    def _next(self) -> Any | None:
+        # timeout_s counts from the first frame: a robot started after us is waited for (the
+        # warning after warn_after_s says that nothing arrives); only close() ends the wait
+        with self._cond:
+            while self.received == 0 and not self._closed:
+                self._cond.wait(0.2)
+        return super()._next()
 
     def _warn_if_silent(self) -> None:
         if self._heard.wait(self.cfg.warn_after_s) or self._closed:

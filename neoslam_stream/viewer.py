@@ -439,13 +439,12 @@ class LiveLogger:
 
 def watch_live(run_dir: Path, view: RunView, duration: float | None = None,
                connect: list[str] | None = None) -> None:
-    """Log a running pipeline until its report.json appears (the run ended), ``duration`` seconds
-    pass or Ctrl-C; then log the final map from map.json when the run wrote one."""
+    """Log a running pipeline until its report.json (or part.json) appears (the run ended),
+    ``duration`` seconds pass or Ctrl-C; then log the final map from map.json when the run wrote one."""
     ep = json.loads((run_dir / "endpoints.json").read_text())
     feed = LiveFeed(ep["run"], list(ep["connect"]) + list(connect or []))
     logger = LiveLogger(view)
     t_end = None if duration is None else time.monotonic() + duration
-    report = run_dir / "report.json"
     ended_at: float | None = None
     try:
         while t_end is None or time.monotonic() < t_end:
@@ -455,7 +454,7 @@ def watch_live(run_dir: Path, view: RunView, duration: float | None = None,
             for payload in images:
                 logger.image(payload)
             if not small and not images:
-                if ended_at is None and report.exists() and report.stat().st_mtime >= _started(run_dir):
+                if ended_at is None and _ended(run_dir):
                     ended_at = time.monotonic()
                 if ended_at is not None and time.monotonic() - ended_at > 1.0:
                     break
@@ -478,12 +477,19 @@ def _started(run_dir: Path) -> float:
     return (run_dir / "endpoints.json").stat().st_mtime
 
 
+#: what a run writes into its folder when it ends: report.json (the host with the source), or
+#: part.json (a host running only some stages of a run split over hosts: runtime/parts.py)
+END_FILES = ("report.json", "part.json")
+
+
+def _ended(run_dir: Path) -> bool:
+    started = _started(run_dir)
+    return any((run_dir / f).exists() and (run_dir / f).stat().st_mtime >= started for f in END_FILES)
+
+
 def is_running(run_dir: Path) -> bool:
-    """A run folder whose run has not ended: endpoints.json and no report.json newer than it."""
-    ep, report = run_dir / "endpoints.json", run_dir / "report.json"
-    if not ep.exists():
-        return False
-    return not report.exists() or report.stat().st_mtime < ep.stat().st_mtime
+    """A run folder whose run has not ended: endpoints.json and no end file newer than it."""
+    return (run_dir / "endpoints.json").exists() and not _ended(run_dir)
 
 
 def view(run_dir: str | Path, save: str | Path | None = None, window: bool | None = None,

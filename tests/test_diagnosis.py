@@ -97,6 +97,45 @@ def test_closures_csv_rows_by_hand(tmp_path):
     rec.close()
 
 
+def _feed_line(rec, frames):
+    """Frames along x (1 m apart), one template each, a return to template 0 from frame 3 on."""
+    for f in frames:
+        rec.process(GROUNDTRUTH, _gt(f, float(f % 3), 0.0))
+        rec.process(VISUAL_TEMPLATE, _vt(f, f if f < 3 else 0, f >= 3, score=0.5 * f))
+
+
+def test_a_restarted_recorder_neither_loses_nor_doubles_closure_rows(tmp_path):
+    first = RecorderNode()
+    first.run_dir, first.run_id = str(tmp_path), "run-1"
+    _feed_line(first, range(6))  # then killed: no flush, no close
+    second = RecorderNode()
+    second.run_dir, second.run_id = str(tmp_path), "run-1"
+    _feed_line(second, range(4, 8))  # upstream replays 4 and 5 before new frames
+    second.flush()
+    second.close()
+    # closures at frames 3..7, each matched to frame 0 (template 0's first frame, which the second
+    # recorder reads back from templates.csv), x = f % 3; the true position of frame 0 died with the
+    # first recorder (no checkpoint), so the new rows' distances are unknown, not wrong
+    want = "".join(f"{f},{0.1 * f:.6f},0,0,{f % 3:.3f},{0.5 * f:g},,\n" for f in range(3, 6))
+    want += "".join(f"{f},{0.1 * f:.6f},0,0,,{0.5 * f:g},,\n" for f in range(6, 8))
+    assert (tmp_path / "closures.csv").read_text() == CLOSURES_HEADER + want
+
+
+def test_a_recorder_restored_from_a_checkpoint_keeps_the_places(tmp_path):
+    first = RecorderNode()
+    first.run_dir, first.run_id = str(tmp_path), "run-1"
+    _feed_line(first, range(5))
+    state = first.state_dict()  # the checkpoint, then killed
+    second = RecorderNode()
+    second.run_dir, second.run_id = str(tmp_path), "run-1"
+    second.load_state_dict(state)
+    _feed_line(second, range(5, 8))
+    second.flush()
+    second.close()
+    want = "".join(f"{f},{0.1 * f:.6f},0,0,{f % 3:.3f},{0.5 * f:g},,\n" for f in range(3, 8))
+    assert (tmp_path / "closures.csv").read_text() == CLOSURES_HEADER + want
+
+
 def test_closure_rows_without_ground_truth_have_an_empty_distance(tmp_path):
     rec = RecorderNode()
     rec.run_dir = str(tmp_path)

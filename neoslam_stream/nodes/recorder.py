@@ -66,6 +66,8 @@ TEMPLATES, TRAJECTORY, CLOSURES = "templates.csv", "trajectory.tum", "closures.c
 GT_WAIT_ROWS = 64
 #: the outputs as ROS 2 messages (docs/ros2.md)
 MCAP = "outputs.mcap"
+#: true positions kept for frames whose template has not come yet, at most
+GT_KEEP = 4096
 
 
 def template_line(r: tuple) -> str:
@@ -198,6 +200,8 @@ class RecorderNode(Node):
             self.places[frame] = xy
         if frame >= self.last_template_frame:
             self.gt[frame] = xy
+            if len(self.gt) > GT_KEEP:  # no template for a long time (a stalled front end): bounded
+                del self.gt[min(self.gt)]
         self.closures_waiting = [r if r[4] is not None or r[0] != frame else (*r[:4], xy, *r[5:])
                                  for r in self.closures_waiting]
         self._settle_closures()
@@ -290,6 +294,14 @@ class RecorderNode(Node):
             files[k].cut(len(header) + sum(map(len, rows[:keep[k]])) if has_header else 0)
             if not has_header:
                 files[k].append(header)
+            if k == "t":
+                # the templates' first frames, for the matched frames of later closures (a restart
+                # without a checkpoint lost them; their true positions stay unknown: empty distances)
+                for raw in rows[:keep[k]]:
+                    parts = raw.split(b",")
+                    if len(parts) >= 3 and parts[0].isdigit() and parts[2].lstrip(b"-").isdigit():
+                        self.template_first.setdefault(int(parts[2]), int(parts[0]))
+        self._first_frames |= set(self.template_first.values())
         kept, seen = [], dict.fromkeys(kinds, 0)
         for kind, frame in entries:
             if seen[kind] < keep[kind]:

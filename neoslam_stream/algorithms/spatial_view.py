@@ -238,11 +238,27 @@ def _top2(y, lengths, ptr, post, f_pool, f_next, f_head, f_tail, f_fill, pool, n
     # 2. rarest lists first. After e lists an interval met in none of them scores at most n - e;
     # once n - e < s2 it cannot enter the top two (a tie needs s = s2), so candidate generation stops.
     order = np.argsort(lengths, kind="mergesort")
+    avg_union = u_ptr[limit] / limit  # cost of one exact score, in cells read
     n_touched = 0
     read = 0
     e = 0
     next_check = 16
-    while e < n and n - e >= s2:
+    last_count = -8
+    while e < n:
+        if n - e < s2 and e - last_count >= 8:
+            # every interval in the top two has been met. Reading on only prunes: a candidate
+            # missing more than n - s2 of the lists read is out. Stop when verifying the
+            # survivors costs less than the next 8 lists (real SDRs: long, similar lists).
+            last_count = e
+            alive = 0
+            for t in range(n_touched):
+                if partial[touched[t]] + n - e >= s2:
+                    alive += 1
+            ahead = 0
+            for q in range(e, min(n, e + 8)):
+                ahead += lengths[order[q]]
+            if alive * avg_union <= ahead:
+                break
         b = y[order[e]]
         read += lengths[order[e]]
         n_touched = _walk_csr(b, ptr, post, limit, partial, touched, n_touched)

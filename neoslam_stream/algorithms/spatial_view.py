@@ -244,11 +244,13 @@ def _top2(y, lengths, ptr, post, f_pool, f_next, f_head, f_tail, f_fill, pool, n
     e = 0
     next_check = 16
     last_count = -8
+    prev_alive = 1 << 62
     while e < n:
         if n - e < s2 and e - last_count >= 8:
             # every interval in the top two has been met. Reading on only prunes: a candidate
             # missing more than n - s2 of the lists read is out. Stop when verifying the
-            # survivors costs less than the next 8 lists (real SDRs: long, similar lists).
+            # survivors costs less than the next 8 lists (real SDRs: long, similar lists), or
+            # when reading prunes little and verifying is cheaper than reading the rest.
             last_count = e
             alive = 0
             for t in range(n_touched):
@@ -257,8 +259,16 @@ def _top2(y, lengths, ptr, post, f_pool, f_next, f_head, f_tail, f_fill, pool, n
             ahead = 0
             for q in range(e, min(n, e + 8)):
                 ahead += lengths[order[q]]
+            remaining = 0
+            for q in range(e, n):
+                remaining += lengths[order[q]]
             if alive * avg_union <= ahead:
                 break
+            # the last 8 lists pruned little (the survivors are near copies of y_t): verify them
+            # if that is cheaper than reading every remaining list
+            if alive > 0.9 * prev_alive and alive * avg_union <= remaining:
+                break
+            prev_alive = alive
         b = y[order[e]]
         read += lengths[order[e]]
         n_touched = _walk_csr(b, ptr, post, limit, partial, touched, n_touched)

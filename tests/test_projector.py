@@ -221,3 +221,102 @@ def test_bin_round_trip_with_float16_storage(tmp_path):
     np.testing.assert_array_equal(full.matrix_float32(), m)
     with pytest.raises(ValueError, match="literal_error|float32"):
         P.BinaryProjector(input_dim=40, matrix_dtype="int8")
+
+
+# ------------------------------------------------------------------ B in torch on a device (#16)
+
+def _marginal_only(bits_a, bits_b, d, k=256):
+    """Every bit on which two sLSBH codes of (nearly) the same d differ must be marginal: its
+    component within float32 rounding of the k-th largest / smallest value of d (a different
+    summation order moves each d_j by ~1e-6 relative, so only near-ties can swap)."""
+    diff = set(bits_a.tolist()) ^ set(bits_b.tolist())
+    hi, lo = np.sort(d)[-k], np.sort(d)[k - 1]
+    tol = 1e-4 * float(np.abs(d).max())
+    for bit in diff:
+        j = bit % d.shape[0]
+        edge = hi if bit < d.shape[0] else lo
+        assert abs(float(d[j]) - float(edge)) <= tol, (bit, d[j], edge)
+    return len(diff)
+
+
+def test_torch_projection_on_cpu_gives_the_numba_bits_up_to_marginal_ties():
+    bp = P.BinaryProjector(input_dim=3000, seed=4)
+    tp = P.TorchProjection(bp, "cpu")
+    F = np.random.default_rng(7).standard_normal((12, 3000)).astype(np.float32)
+    d = bp.project(F)
+    flipped = 0
+    for row, a, b in zip(d, bp.bits_batch(F), tp.bits_batch(F), strict=True):
+        assert b.dtype == np.uint16 and b.size == 512 and np.all(np.diff(b.astype(int)) > 0)
+        flipped += _marginal_only(a, b, row)
+    assert flipped <= 12 * 4  # a few near-ties at most, never a systematic difference
+    # the torch path's own sLSBH follows the definition (stable: ties to the lower index)
+    import torch
+
+    dt = (torch.from_numpy(F[0]) @ tp.matrix).numpy()
+    np.testing.assert_array_equal(tp.bits_batch(F[:1])[0], P.slsbh(dt))
+    # frame by frame, whatever the batch
+    np.testing.assert_array_equal(np.stack(tp.bits_batch(F[3:5])), np.stack(tp.bits_batch(F)[3:5]))
+
+
+def test_torch_projection_uses_the_float16_rounded_matrix_and_centres_like_numba():
+    bp = P.BinaryProjector(input_dim=500, seed=2, matrix_dtype="float16", centre_window=3)
+    ref = P.BinaryProjector(input_dim=500, seed=2, matrix_dtype="float16", centre_window=3)
+    tp = P.TorchProjection(bp, "cpu")
+    np.testing.assert_array_equal(tp.matrix.numpy(), ref.matrix_float32())
+    F = np.random.default_rng(8).standard_normal((6, 500)).astype(np.float32) + 3.0
+    tp.bits_batch(F)
+    ref.bits_batch(F)
+    st = tp.state_dict()
+    assert st["n_seen"] == 6
+    np.testing.assert_allclose(st["mean"], ref.mean, rtol=0, atol=1e-12)
+    other = P.TorchProjection(P.BinaryProjector(input_dim=500, seed=2, matrix_dtype="float16", centre_window=3), "cpu")
+    other.load_state_dict(st)
+    G = F[::-1].copy()
+    for a, b in zip(tp.bits_batch(G), other.bits_batch(G), strict=True):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError, match="NaN"):
+        tp.bits_batch(np.full((1, 500), np.nan, np.float32))
+
+
+def test_device_field_accepts_cpu_auto_cuda_and_cuda_n_only():
+    for dev in ("cpu", "auto", "cuda", "cuda:1"):
+        assert P.ProjectorConfig(device=dev).device == dev
+    with pytest.raises(ValueError):
+        P.ProjectorConfig(device="gpu")
+
+
+def test_a_gpu_device_fuses_a_and_b_into_one_node_in_the_plan():
+    from neoslam_stream.config import load_config
+    from neoslam_stream.nodes.pipelines import build_plan
+
+    names = [s.name for s in build_plan(load_config("default")).stages]
+    assert names[:2] == ["A", "B"]  # default: B is the numba kernel in its own process
+    cfg = load_config("default", overrides={"projector": {"device": "cuda:1"}})
+    stages = build_plan(cfg).stages
+    assert [s.name for s in stages][:2] == ["A", "C"]
+    assert stages[0].factory.endswith(":make_fused_node")
+    assert stages[0].params["features"]["device"] == "cuda:1"  # A follows B's device
+    cfg = load_config("default", overrides={"projector": {"device": "cuda"}, "features": {"device": "cpu"}})
+    with pytest.raises(ValueError, match="share the device"):
+        build_plan(cfg)
+
+
+def test_fused_node_on_cpu_emits_the_bits_of_a_then_b():
+    from neoslam_stream.nodes import features as FN
+
+    feats = dict(backbone="random_alexnet", seed=1, device="cpu", frame_stride=2)
+    fused = FN.make_fused_node(feats, dict(input_dim=64896, seed=5))
+    fused.setup()
+    a = FN.make_node(**feats)
+    a.setup()
+    b = PN.make_node(input_dim=64896, seed=5)
+    b.setup()
+    rng = np.random.default_rng(0)
+    msgs = [Message("image", i, i * 0.1, {"image": rng.integers(0, 256, (60, 80, 3), dtype=np.uint8),
+                                          "encoding": "rgb8"}) for i in range(4)]
+    out = fused.process_batch("image", msgs)
+    assert [m.frame for _, m in out] == [0, 2] and fused.counters["strided"] == 2
+    ref = b.process_batch("visual_features", [m for _, m in a.process_batch("image", msgs)])
+    for (_, got), (_, want), (_, f) in zip(out, ref, a.process_batch("image", msgs), strict=True):
+        assert got.type == "bin_features" and got["size"] == 2048
+        _marginal_only(want["bits"], got["bits"], b.projector.project(f["features"]))

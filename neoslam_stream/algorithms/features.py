@@ -62,7 +62,8 @@ class FeatureConfig(BaseModel):
     y_min: int = Field(0, ge=0)
     y_max: int | None = None
     colour: Literal["grey", "rgb"] = "grey"
-    device: Literal["auto", "cpu", "cuda"] = "auto"
+    #: torch device of the backbone: auto (cuda when torch sees a GPU), cpu, cuda or cuda:N
+    device: str = Field("auto", pattern=r"^(cpu|auto|cuda(:[0-9]+)?)$")
     threads: int = Field(1, ge=1)
     seed: int = 42
 
@@ -213,12 +214,18 @@ class VisualFeatureExtractor:
         """Several RGB frames -> (n, output_dim) float32, one forward pass."""
         if not rgbs:
             return np.zeros((0, self.output_dim), np.float32)
+
+        return self.extract_tensor_batch(rgbs).cpu().numpy()
+
+    def extract_tensor_batch(self, rgbs: Sequence[np.ndarray]) -> Any:
+        """Like :meth:`extract_batch` but the (n, output_dim) float32 torch tensor stays on the
+        device (the fused A+B node projects it there: only bits leave the GPU)."""
         import torch
 
         x = torch.from_numpy(np.stack([self.preprocess(r) for r in rgbs])).to(self.device)
         with torch.inference_mode():
             y = self.net(x)
-        out = y.reshape(y.shape[0], -1).float().cpu().numpy()
+        out = y.reshape(y.shape[0], -1).float()
         if out.shape[1] != self.output_dim:
             raise RuntimeError(f"backbone produced {out.shape[1]} features, expected {self.output_dim}")
         return out

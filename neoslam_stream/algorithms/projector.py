@@ -69,6 +69,10 @@ class ProjectorConfig(BaseModel):
     #: storage precision of the Gaussian matrix P: float32 (265 MB, the reference) or float16
     #: (133 MB, half the memory traffic per frame; every product still accumulates in float32)
     matrix_dtype: Literal["float32", "float16"] = "float32"
+    #: where B computes: ``cpu`` = the fixed-order numba kernel (default); ``cuda``, ``cuda:N`` or
+    #: ``auto`` (cuda when torch sees a GPU, else cpu) = torch on that device, fused with stage A
+    #: in one node so that only the bits leave the device (see :class:`TorchProjection`)
+    device: str = Field("cpu", pattern=r"^(cpu|auto|cuda(:[0-9]+)?)$")
 
 
 def gaussian_matrix(n: int, seed: int, m: int = N_PROJ, half: bool = False) -> np.ndarray:
@@ -268,6 +272,67 @@ def _slsbh_rows(D, k, out):  # pragma: no cover - compiled
         asc = np.argsort(D[r], kind="mergesort")[:k]
         out[r, :k] = np.sort(desc)
         out[r, k:] = np.sort(asc) + m
+
+
+class TorchProjection:
+    """B in torch on any device: d = P f and sLSBH there, only the bit indices come back.
+
+    Used by the fused A+B node when ``device`` is a GPU, so a frame's 64896 features never cross
+    the PCIe bus; P moves to the device once (float32 values; with ``matrix_dtype: float16`` the
+    rounded ones, so both precisions give the same values as on the CPU). sLSBH uses stable sorts
+    (ties: lower index), like :func:`slsbh`. Each frame is one matrix-vector product, so a frame's
+    bits do not depend on how many frames were batched with it. The summation order is torch's
+    (BLAS / cuBLAS), not the numba kernel's: a projected value within a rounding error of the
+    256th largest or smallest can flip one bit pair (measured agreement: docs/performance.md).
+    Centring (``centre_window``) runs on the device in float64, the same rule as
+    :meth:`BinaryProjector.centre`; the running mean stays there (:meth:`state_dict` fetches it).
+    """
+
+    def __init__(self, projector: BinaryProjector, device: Any) -> None:
+        import torch
+
+        if projector.projection != "gaussian":
+            raise ValueError("the torch path implements the gaussian projection only")
+        self.projector = projector
+        self.device = torch.device(device)
+        self.k = int(round(N_PROJ * projector.sparsity))
+        self.matrix = torch.from_numpy(np.ascontiguousarray(projector.matrix_float32())).to(self.device)
+        self.mean = torch.from_numpy(projector.mean).to(self.device)
+
+    def bits_batch(self, feats: Any) -> list[np.ndarray]:
+        """(b, n) features (a torch tensor on any device, or numpy) -> b sorted uint16 bit arrays."""
+        import torch
+
+        f = torch.as_tensor(feats).to(self.device, torch.float32)
+        if f.ndim != 2 or f.shape[1] != self.projector.input_dim:
+            raise InvalidInput(f"features of shape {tuple(f.shape)}, projector expects (b, {self.projector.input_dim})")
+        if not bool(torch.isfinite(f).all()):
+            raise InvalidInput("features contain NaN or infinite values")
+        pr = self.projector
+        out = []
+        with torch.inference_mode():
+            for row in f:
+                if pr.centre_window:
+                    pr.n_seen += 1
+                    self.mean += (row.double() - self.mean) / min(pr.n_seen, pr.centre_window)
+                    row = (row.double() - self.mean).float()
+                d = row @ self.matrix
+                desc = torch.sort(d, descending=True, stable=True).indices[: self.k]
+                asc = torch.sort(d, stable=True).indices[: self.k]
+                bits = torch.cat([torch.sort(desc).values, torch.sort(asc).values + d.shape[0]])
+                out.append(bits.to(torch.int32).cpu().numpy().astype(np.uint16))
+        return out
+
+    def state_dict(self) -> dict[str, Any]:
+        """The running mean, fetched from the device (only here: per frame only bits leave it)."""
+        self.projector.mean = self.mean.cpu().numpy().astype(np.float64)
+        return self.projector.state_dict()
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        import torch
+
+        self.projector.load_state_dict(state)
+        self.mean = torch.from_numpy(self.projector.mean).to(self.device)
 
 
 def slsbh(d: np.ndarray, sparsity: float = 0.25) -> np.ndarray:

@@ -75,10 +75,25 @@ def neoslam_feature_params(cfg: Any) -> tuple[dict[str, Any], dict[str, Any]]:
 def build_neoslam(cfg: Any) -> PipelinePlan:
     """NeoSLAM: A (features), B (projector), C (neocortex), D (spatial-view cells), RatSLAM back end."""
     feats, proj = neoslam_feature_params(cfg)
-    specs = [NodeSpec("A", "neoslam_stream.nodes.features:make_node", feats, threads=cfg.features.threads),
-             NodeSpec("B", "neoslam_stream.nodes.projector:make_node", proj, threads=cfg.projector.threads),
-             NodeSpec("C", "neoslam_stream.nodes.neocortex:make_node", cfg.neocortex.model_dump()),
-             NodeSpec("D", "neoslam_stream.nodes.spatial_view:make_node", cfg.spatial_view.model_dump())]
+    if proj["device"] == "auto":  # asked for explicitly (the default is cpu): torch decides
+        import torch
+
+        proj["device"] = "cuda" if torch.cuda.is_available() else "cpu"
+    if proj["device"] != "cpu":
+        # B in torch on a device: fused with A in one node there, so only bits leave the device
+        if feats["device"] == "auto":
+            feats["device"] = proj["device"]
+        elif feats["device"] != proj["device"]:
+            raise ValueError(f"projector.device {proj['device']} needs features.device {proj['device']} or "
+                             f"auto (A and B share the device), not {feats['device']}")
+        front = [NodeSpec("A", "neoslam_stream.nodes.features:make_fused_node",
+                          {"features": feats, "projector": proj}, threads=cfg.features.threads)]
+    else:
+        front = [NodeSpec("A", "neoslam_stream.nodes.features:make_node", feats, threads=cfg.features.threads),
+                 NodeSpec("B", "neoslam_stream.nodes.projector:make_node", proj, threads=cfg.projector.threads)]
+    specs = front + [
+        NodeSpec("C", "neoslam_stream.nodes.neocortex:make_node", cfg.neocortex.model_dump()),
+        NodeSpec("D", "neoslam_stream.nodes.spatial_view:make_node", cfg.spatial_view.model_dump())]
     _backend_specs(cfg, specs)
     return PipelinePlan(specs, final_topic="experience_map/pose", entry_stages=["A"],
                         consumed_source_topics=_source_topics(cfg))

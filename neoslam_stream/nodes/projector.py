@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from ..algorithms.projector import N_BITS, BinaryProjector, ProjectorConfig
+from ..algorithms.projector import N_BITS, BinaryProjector, ProjectorConfig, TorchProjection
 from ..runtime.messages import Message
 from ..runtime.node import Node, Output, StageInputError
 from .topics import BIN_FEATURES, VISUAL_FEATURES
@@ -24,6 +24,7 @@ class ProjectorNode(Node):
         super().__init__()
         self.config = ProjectorConfig(**params)
         self.projector: BinaryProjector | None = None
+        self.torch: Any = None
 
     def setup(self) -> None:
         try:
@@ -34,6 +35,16 @@ class ProjectorNode(Node):
             pass
         self.projector = BinaryProjector(self.config)
         self.projector.warm_up()
+        # a device other than cpu: torch there (pipelines fuse B with A instead; this is for a B
+        # hosted alone, e.g. by a custom plan)
+        self.torch = None
+        if self.config.device != "cpu":
+            import torch
+
+            dev = self.config.device
+            if dev == "auto":
+                dev = "cuda" if torch.cuda.is_available() else "cpu"
+            self.torch = TorchProjection(self.projector, dev) if dev != "cpu" else None
 
     def process(self, topic: str, msg: Message) -> Output:
         return self.process_batch(topic, [msg])
@@ -48,7 +59,7 @@ class ProjectorNode(Node):
             if not np.all(np.isfinite(f)):
                 raise StageInputError(f"features of frame {m.frame} contain NaN or infinite values")
             feats.append(f)
-        bits = self.projector.bits_batch(np.stack(feats))
+        bits = (self.torch or self.projector).bits_batch(np.stack(feats))
         return [(BIN_FEATURES, m.derive(BIN_FEATURES, {"bits": b, "size": N_BITS}))
                 for m, b in zip(msgs, bits, strict=True)]
 
@@ -58,13 +69,15 @@ class ProjectorNode(Node):
                 "centre_window": self.config.centre_window}
 
     def state_dict(self) -> dict[str, Any]:
+        if self.torch is not None:
+            return self.torch.state_dict()
         return self.projector.state_dict() if self.projector is not None else {}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         if self.projector is None:
             self.setup()
         assert self.projector is not None
-        self.projector.load_state_dict(state)
+        (self.torch or self.projector).load_state_dict(state)
 
 
 def make_node(**params: Any) -> ProjectorNode:

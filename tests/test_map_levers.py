@@ -154,3 +154,22 @@ def test_odometry_gate_off_accepts_everything():
     g.check(0)
     g.on_odo(100.0, 0.0, 1.0)
     assert g.check(1) and g.check(0)
+
+
+def test_min_gap_leaves_recent_intervals_out_before_the_best_is_picked():
+    kw = dict(theta_alpha=32, theta_rho=0, theta_sigma=32, exclude_recent_intervals=1)
+    cells = SpatialViewCells(**kw, sequence={"min_gap_frames": 10})
+    plain = SpatialViewCells(**kw)
+    for c in (cells, plain):
+        for i in range(20):
+            c.compute(_disjoint(i))
+    # frame 20 shows place 15 again (opened at frame 15, 5 frames ago): a closure by the paper's
+    # rule, none with a 10-frame gap
+    assert plain.compute(_disjoint(15))["is_loop_closure"] is True
+    assert cells.compute(_disjoint(15))["is_loop_closure"] is False
+    # frame 21 shows part of place 3 (score 40, 18 frames ago) and all of place 18 (score 64, 3
+    # frames ago): the paper's rule picks 18, the gap leaves it out before the best is picked
+    both = np.concatenate([_disjoint(3)[:40], _disjoint(18)])
+    assert plain.compute(both)["best_interval"] == 18
+    r = cells.compute(both)
+    assert r["is_loop_closure"] is True and r["best_interval"] == 3

@@ -13,12 +13,16 @@ precision >= 0.95 (the paper's rule fails it by far), at least 150 closures and 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from neoslam_stream import NeoSLAM, load_config
 from neoslam_stream.evaluation import loop_closure_quality
 from neoslam_stream.sources.synthetic import SyntheticWorldSource
 
 FRAMES = 1000
+
+#: about 45 s on a quiet 2-core machine (render + A + B + C + D + back end, ~40 ms per frame)
+pytestmark = pytest.mark.slow
 
 
 def test_default_closures_are_precise_on_a_short_synthetic_run(tmp_path):

@@ -173,3 +173,17 @@ def test_min_gap_leaves_recent_intervals_out_before_the_best_is_picked():
     assert plain.compute(both)["best_interval"] == 18
     r = cells.compute(both)
     assert r["is_loop_closure"] is True and r["best_interval"] == 3
+
+
+def test_pose_cell_node_keeps_a_refused_template_from_the_network():
+    from neoslam_stream.nodes.ratslam import make_pose_cells_node
+    from neoslam_stream.runtime.messages import Message
+
+    node = make_pose_cells_node(odometry_gate={"radius_m": 1.0, "drift": 0.0})
+    for f, (v, vt) in enumerate([(0.0, 0), (10.0, 1), (0.0, 0)]):  # template 0 again, 10 m away
+        node.process("odom", Message("odom", f, float(f), {"vtrans": v, "vrot": 0.0, "dt": 1.0}))
+        node.process("visual_template", Message("visual_template", f, float(f), {"id": vt}))
+    node.flush()
+    assert node.gate.refused == 1
+    assert node.pc.current_vt == 1  # the network never saw the refused recognition
+    assert node.info()["gate_refused"] == 1

@@ -339,6 +339,12 @@ LEVERS: dict[str, dict] = {
                     "spatial_view": {"sequence": {"length": 5, "max_step": 2.0, "slack": 4}}},
     "centre_seq10": {"projector": {"centre_window": 100},
                      "spatial_view": {"sequence": {"length": 10, "max_step": 2.0, "slack": 4}}},
+    "seq10_robust1": {"spatial_view": {"sequence": {"length": 10, "max_step": 2.0, "slack": 4}},
+                      "experience_map": {"exp_robust_m": 1.0}},
+    "seq10_gate_3_0.3": {"spatial_view": {"sequence": {"length": 10, "max_step": 2.0, "slack": 4}},
+                         "pose_cells": {"odometry_gate": {"radius_m": 3.0, "drift": 0.3}}},
+    "seq10_loops100": {"spatial_view": {"sequence": {"length": 10, "max_step": 2.0, "slack": 4}},
+                       "experience_map": {"exp_loops": 100}},
     "seq5_gate_1_0.1": {"spatial_view": {"sequence": {"length": 5, "max_step": 2.0, "slack": 4}},
                         "pose_cells": {"odometry_gate": {"radius_m": 1.0, "drift": 0.1}}},
 }

@@ -21,7 +21,8 @@ from neoslam_stream.sources.synthetic import SyntheticWorldSource
 
 FRAMES = 1000
 
-#: about 45 s on a quiet 2-core machine (render + A + B + C + D + back end, ~40 ms per frame)
+#: about 50 s: 48 ms per frame (render 10 ms + one in-process step 38 ms) measured with the
+#: 2-core machine at load 4; less on a quiet one
 pytestmark = pytest.mark.slow
 
 

@@ -132,9 +132,16 @@ def run_synthetic(cfg: Any, data: dict[str, np.ndarray], run_dir: Path) -> dict[
     write_tum(run_dir / "odometry.tum", np.array(rows))
     ev = evaluate_run(run_dir, plot=False)
     lc = ev["loop_closures"]
+    # the final (relaxed) map: each experience at the true position of the frame that created it
+    from neoslam_stream.evaluation import ape, associate
+
+    mp = json.loads((run_dir / "map.json").read_text())
+    nodes = np.array([[n["stamp"], n["x"], n["y"]] for n in mp["nodes"]])
+    ne, ng = associate(nodes[:, 0], gt[:, 0], max_dt=1.0)
+    map_ape = ape(nodes[ne, 1:3], gt[ng, 1:3])  # ape aligns (SE(2)) itself
     return {"ape_mean_m": ev["trajectory_ape"]["mean_m"], "ape_max_m": ev["trajectory_ape"]["max_m"],
             "odometry_mean_m": ev["odometry_ape"]["mean_m"], "closures": lc["closures"],
-            "precision": lc["precision"], "recall": lc["recall"], "radius_m": lc["radius_m"],
+            "final_map_ape_mean_m": map_ape["mean_m"], "precision": lc["precision"], "recall": lc["recall"], "radius_m": lc["radius_m"],
             "d_and_backend_s": round(secs, 1)}
 
 
@@ -200,6 +207,37 @@ def run_nordland(proj: dict, svc_list: list[dict], data: dict[str, Any]) -> list
     return out
 
 
+_SVC = dict(theta_alpha=384, theta_rho=3, exclude_recent_intervals=3)
+_SEQ = {"max_step": 2.0, "slack": 4}
+#: (B settings, D settings...) of the Nordland study (theta_sigma None: calibrated on summer)
+NORDLAND_LEVERS = [
+    (proj, [dict(_SVC, theta_sigma=None), dict(_SVC, theta_sigma=470)]
+     + [dict(_SVC, theta_sigma=None, sequence={"length": n, **_SEQ}) for n in (2, 3, 5, 10)]
+     + [dict(_SVC, theta_sigma=None, sequence={"min_gap_frames": 200}),
+        dict(_SVC, theta_sigma=None, sequence={"length": 3, **_SEQ, "min_gap_frames": 200})])
+    for proj in ({}, {"centre_window": 100})]
+
+#: TUC corridor levers: (name, pose-cell overrides, experience-map overrides, sequence filter)
+TUC_LEVERS = [("none", {}, {}, None)] + [
+    (f"robust_{k}", {}, {"exp_robust_m": k}, None) for k in (1.0, 3.0, 10.0)] + [
+    (f"gate_5_{c}", {"odometry_gate": {"radius_m": 5.0, "drift": c}}, {}, None) for c in (0.05, 0.1, 0.2, 0.3, 0.5)] + [
+    ("pc_cell_2m", {"pc_cell_x_size": 2.0}, {}, None), ("pc_inject_0.3", {"pc_vt_inject_energy": 0.3}, {}, None)] + [
+    (f"sequence_{n}", {}, {}, {"length": n, "max_step": 2.0, "slack": 2}) for n in (2, 3, 5)]
+
+
+def tuc_levers() -> dict[str, Any]:
+    """Each TUC lever alone on the shipped TUC settings (positions-only ground truth)."""
+    from neoslam_stream.datasets import tuc
+    from neoslam_stream.datasets.tuc import TUC_SETTINGS as S
+
+    res = {}
+    for name, pc, em, seq in TUC_LEVERS:
+        r = tuc.run({**S["pc"], **pc}, {**S["em"], **em}, S["threshold"], S["min_gap_s"], sequence=seq)
+        res[name] = {k: r[k] for k in ("map_mean_m", "odometry_mean_m", "recognised_frames", "gate_refused")}
+        print("tuc", name, res[name], flush=True)
+    return res
+
+
 def merge(base: dict, over: dict) -> dict:
     out = copy.deepcopy(base)
     for k, v in over.items():
@@ -227,15 +265,27 @@ def main() -> None:
     ap.add_argument("--only", nargs="*", default=None, help="lever names to run")
     ap.add_argument("--frames", type=int, default=None)
     ap.add_argument("--out", default=str(RESULTS / "maps.json"))
+    ap.add_argument("--nordland", action="store_true", help="the Nordland levers instead")
+    ap.add_argument("--tuc", action="store_true", help="the TUC corridor levers instead")
     args = ap.parse_args()
     from neoslam_stream.config import FullRunConfig
 
-    data = synthetic_inputs(args.frames)
-    base = base_config_dict()
     results: dict[str, Any] = {}
     out = Path(args.out)
     if out.exists():
         results = json.loads(out.read_text())
+    if args.nordland or args.tuc:
+        if args.nordland:
+            data_n = nordland_inputs()
+            results["nordland"] = [
+                {k: r[k] for k in ("closures", "correct", "precision", "recall", "svc", "proj")}
+                for proj, svcs in NORDLAND_LEVERS for r in run_nordland(proj, svcs, data_n)]
+        if args.tuc:
+            results["tuc_levers"] = tuc_levers()
+        out.write_text(json.dumps(results, indent=2))
+        return
+    data = synthetic_inputs(args.frames)
+    base = base_config_dict()
     for name, over in LEVERS.items():
         if args.only is not None and name not in args.only:
             continue
@@ -275,6 +325,26 @@ LEVERS: dict[str, dict] = {
     "centre_100": {"projector": {"centre_window": 100}},
     "gate_1_0.1": {"pose_cells": {"odometry_gate": {"radius_m": 1.0, "drift": 0.1}}},
     "gate_1_0.2": {"pose_cells": {"odometry_gate": {"radius_m": 1.0, "drift": 0.2}}},
+    "gap_100": {"spatial_view": {"sequence": {"min_gap_frames": 100}}},
+    "seq5_gap100": {"spatial_view": {"sequence": {"length": 5, "max_step": 2.0, "slack": 4, "min_gap_frames": 100}}},
+    "seq5_gap100_gate": {"spatial_view": {"sequence": {"length": 5, "max_step": 2.0, "slack": 4,
+                                                       "min_gap_frames": 100}},
+                         "pose_cells": {"odometry_gate": {"radius_m": 1.0, "drift": 0.1}}},
+    "seq10_gap100": {"spatial_view": {"sequence": {"length": 10, "max_step": 2.0, "slack": 4, "min_gap_frames": 100}}},
+    "seq10_sigma440": {"spatial_view": {"theta_sigma": 440,
+                                        "sequence": {"length": 10, "max_step": 2.0, "slack": 4}}},
+    "seq10_inject0.3": {"spatial_view": {"sequence": {"length": 10, "max_step": 2.0, "slack": 4}},
+                        "pose_cells": {"pc_vt_inject_energy": 0.3}},
+    "centre_seq5": {"projector": {"centre_window": 100},
+                    "spatial_view": {"sequence": {"length": 5, "max_step": 2.0, "slack": 4}}},
+    "centre_seq10": {"projector": {"centre_window": 100},
+                     "spatial_view": {"sequence": {"length": 10, "max_step": 2.0, "slack": 4}}},
+    "seq10_robust1": {"spatial_view": {"sequence": {"length": 10, "max_step": 2.0, "slack": 4}},
+                      "experience_map": {"exp_robust_m": 1.0}},
+    "seq10_gate_3_0.3": {"spatial_view": {"sequence": {"length": 10, "max_step": 2.0, "slack": 4}},
+                         "pose_cells": {"odometry_gate": {"radius_m": 3.0, "drift": 0.3}}},
+    "seq10_loops100": {"spatial_view": {"sequence": {"length": 10, "max_step": 2.0, "slack": 4}},
+                       "experience_map": {"exp_loops": 100}},
     "seq5_gate_1_0.1": {"spatial_view": {"sequence": {"length": 5, "max_step": 2.0, "slack": 4}},
                         "pose_cells": {"odometry_gate": {"radius_m": 1.0, "drift": 0.1}}},
 }

@@ -154,3 +154,36 @@ def test_odometry_gate_off_accepts_everything():
     g.check(0)
     g.on_odo(100.0, 0.0, 1.0)
     assert g.check(1) and g.check(0)
+
+
+def test_min_gap_leaves_recent_intervals_out_before_the_best_is_picked():
+    kw = dict(theta_alpha=32, theta_rho=0, theta_sigma=32, exclude_recent_intervals=1)
+    cells = SpatialViewCells(**kw, sequence={"min_gap_frames": 10})
+    plain = SpatialViewCells(**kw)
+    for c in (cells, plain):
+        for i in range(20):
+            c.compute(_disjoint(i))
+    # frame 20 shows place 15 again (opened at frame 15, 5 frames ago): a closure by the paper's
+    # rule, none with a 10-frame gap
+    assert plain.compute(_disjoint(15))["is_loop_closure"] is True
+    assert cells.compute(_disjoint(15))["is_loop_closure"] is False
+    # frame 21 shows part of place 3 (score 40, 18 frames ago) and all of place 18 (score 64, 3
+    # frames ago): the paper's rule picks 18, the gap leaves it out before the best is picked
+    both = np.concatenate([_disjoint(3)[:40], _disjoint(18)])
+    assert plain.compute(both)["best_interval"] == 18
+    r = cells.compute(both)
+    assert r["is_loop_closure"] is True and r["best_interval"] == 3
+
+
+def test_pose_cell_node_keeps_a_refused_template_from_the_network():
+    from neoslam_stream.nodes.ratslam import make_pose_cells_node
+    from neoslam_stream.runtime.messages import Message
+
+    node = make_pose_cells_node(odometry_gate={"radius_m": 1.0, "drift": 0.0})
+    for f, (v, vt) in enumerate([(0.0, 0), (10.0, 1), (0.0, 0)]):  # template 0 again, 10 m away
+        node.process("odom", Message("odom", f, float(f), {"vtrans": v, "vrot": 0.0, "dt": 1.0}))
+        node.process("visual_template", Message("visual_template", f, float(f), {"id": vt}))
+    node.flush()
+    assert node.gate.refused == 1
+    assert node.pc.current_vt == 1  # the network never saw the refused recognition
+    assert node.info()["gate_refused"] == 1

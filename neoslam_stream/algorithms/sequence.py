@@ -11,7 +11,12 @@ sees the places before it again too, in either direction (|m_t - m_{t-i}| grows 
 ``max_step`` reference frames per query frame); an isolated look-alike is refused. ``slack``
 absorbs the interval granularity (an interval spans up to theta_rho + 1 frames).
 
-``length = 0`` switches the filter off (every candidate is a closure: the paper's rule).
+``min_gap_frames``: intervals opened fewer than this many frames before t are no candidates at all
+(D leaves them out before it picks the best). The paper excludes only the omega newest intervals
+(a dozen frames); a robot that moves slowly or turns on the spot sees the same view for longer,
+and a "closure" onto the place it left a second ago makes the back end jump back along its path.
+
+``length = 0`` and ``min_gap_frames = 0`` switch the filter off (the paper's rule).
 """
 
 from __future__ import annotations
@@ -32,6 +37,7 @@ class SequenceConfig(BaseModel):
     length: int = Field(0, ge=0, description="previous frames that must agree (0: filter off)")
     max_step: float = Field(2.0, gt=0, description="reference frames per query frame, at most")
     slack: int = Field(4, ge=0, description="frames of tolerance (interval granularity)")
+    min_gap_frames: int = Field(0, ge=0, description="intervals opened fewer frames ago are no candidates")
 
 
 class SequenceFilter:
@@ -42,6 +48,7 @@ class SequenceFilter:
         self.length = cfg.length
         self.max_step = cfg.max_step
         self.slack = cfg.slack
+        self.min_gap = cfg.min_gap_frames
         #: (frame, reference frame or -1 when the frame had no candidate), the newest last
         self.history: deque[tuple[int, int]] = deque(maxlen=max(self.length, 1))
         self.refused = 0

@@ -49,6 +49,7 @@ docs/frontend.md and docs/performance.md.
 
 from __future__ import annotations
 
+from bisect import bisect_right
 from typing import Any
 
 import numpy as np
@@ -523,6 +524,8 @@ class SpatialViewCells:
             self._post_bits(y, k)
             self._store_union(k, y)
         limit = self.n_intervals - self.omega
+        if self.sequence.min_gap:  # only intervals opened at least min_gap frames ago (sequence.py)
+            limit = min(limit, bisect_right(self.interval_start, self.t - self.sequence.min_gap))
         best, best_score = -1, 0
         second, second_score = -1, 0
         if limit > 0:

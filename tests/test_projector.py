@@ -173,7 +173,7 @@ def test_half_widening_is_exact_for_every_finite_half():
     allh = np.arange(65536, dtype=np.uint16)
     finite = allh[np.isfinite(allh.view(np.float16))]
     out = np.empty((1, finite.size), np.float32)
-    P._project_rows_half(np.ones((1, 1), np.float32), finite.reshape(1, -1), out)
+    P._project_rows(np.ones((1, 1), np.float32), finite.reshape(1, -1), out)
     np.testing.assert_array_equal(out[0], finite.view(np.float16).astype(np.float32))
 
 

@@ -42,7 +42,7 @@ import numba
 import numpy as np
 from llvmlite import ir
 from numba import njit, prange, types
-from numba.extending import intrinsic
+from numba.extending import intrinsic, overload
 from pydantic import BaseModel, ConfigDict, Field
 
 from ._config import make_config
@@ -148,6 +148,41 @@ def sparse_matrix(n: int, seed: int, m: int = N_PROJ) -> Any:
 PROJECTION_CHUNKS = 2
 
 
+@intrinsic
+def _half_to_float(typingctx, h):  # pragma: no cover - compiled
+    """float32 value of one binary16 bit pattern (uint16): LLVM's exact ``fpext half -> float``.
+
+    numba has no float16 type on the CPU; this lowers to the F16C instruction ``vcvtph2ps`` where
+    the CPU has it (vectorised with the loop), else to the compiler runtime's exact conversion.
+    """
+    if h != types.uint16:
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.fpext(builder.bitcast(args[0], ir.HalfType()), ir.FloatType())
+
+    return types.float32(types.uint16), codegen
+
+
+def _widen(w):
+    """The float32 value of one stored entry of P: float32 as it is, a binary16 bit pattern
+    (uint16, ``projector.matrix_dtype: float16``) widened exactly. In compiled code the overload
+    below picks the branch at compile time, so each storage gets its own specialisation of
+    :func:`_project_rows`."""
+    if isinstance(w, np.uint16):
+        return np.float32(np.array(w, np.uint16).view(np.float16))
+    return np.float32(w)
+
+
+@overload(_widen)
+def _widen_compiled(w):  # pragma: no cover - compiled
+    if isinstance(w, types.Float):
+        return lambda w: w
+    if w == types.uint16:
+        return lambda w: _half_to_float(w)
+    return None
+
+
 @njit(parallel=True, cache=True)
 def _project_rows(F, W, out):  # pragma: no cover - compiled
     """out[r] = F[r] @ W with a summation order that depends on nothing but n.
@@ -158,7 +193,9 @@ def _project_rows(F, W, out):  # pragma: no cover - compiled
     in order, so results are identical for any batch size and thread count (lossless runs are
     repeatable). The product is bound by memory bandwidth (265 MB of W per pass): each block of four
     rows of W is read once for the whole batch (micro-batching amortises it), and the two halves
-    run on two threads when B has them.
+    run on two threads when B has them. W is float32, or binary16 bit patterns (uint16,
+    ``matrix_dtype: float16``) widened exactly where they are read (:func:`_widen`): the output is
+    then that of the float32 matrix ``W as float16 -> float32`` bit for bit, from half the bytes.
     """
     n, m = W.shape
     b = F.shape[0]
@@ -181,7 +218,8 @@ def _project_rows(F, W, out):  # pragma: no cover - compiled
                 a2 = F[r, i + 2]
                 a3 = F[r, i + 3]
                 for j in range(m):
-                    acc[j] += (a0 * w0[j] + a1 * w1[j]) + (a2 * w2[j] + a3 * w3[j])
+                    acc[j] += ((a0 * _widen(w0[j]) + a1 * _widen(w1[j]))
+                               + (a2 * _widen(w2[j]) + a3 * _widen(w3[j])))
             i += 4
         while i < hi:
             w0 = W[i]
@@ -189,71 +227,7 @@ def _project_rows(F, W, out):  # pragma: no cover - compiled
                 acc = part[c, r]
                 a0 = F[r, i]
                 for j in range(m):
-                    acc[j] += a0 * w0[j]
-            i += 1
-    for r in range(b):
-        for j in range(m):
-            total = part[0, r, j]
-            for c in range(1, nchunk):
-                total += part[c, r, j]
-            out[r, j] = total
-
-
-@intrinsic
-def _half_to_float(typingctx, h):  # pragma: no cover - compiled
-    """float32 value of one binary16 bit pattern (uint16): LLVM's exact ``fpext half -> float``.
-
-    numba has no float16 type on the CPU; this lowers to the F16C instruction ``vcvtph2ps`` where
-    the CPU has it (vectorised with the loop), else to the compiler runtime's exact conversion.
-    """
-    if h != types.uint16:
-        return None
-
-    def codegen(context, builder, signature, args):
-        return builder.fpext(builder.bitcast(args[0], ir.HalfType()), ir.FloatType())
-
-    return types.float32(types.uint16), codegen
-
-
-@njit(parallel=True, cache=True)
-def _project_rows_half(F, H, out):  # pragma: no cover - compiled
-    """:func:`_project_rows` with P stored as binary16 bit patterns H (uint16, (n, m)).
-
-    Each entry is widened to float32 exactly where it is read, then accumulated exactly like
-    :func:`_project_rows` (same chunks, same order, float32 accumulators), so the output equals :func:`_project_rows` on the float32 matrix ``H as float16 -> float32`` bit for
-    bit, for any batch size and thread count; only half the bytes come from memory.
-    """
-    n, m = H.shape
-    b = F.shape[0]
-    nchunk = PROJECTION_CHUNKS
-    step = ((n + nchunk - 1) // nchunk + 3) // 4 * 4
-    part = np.zeros((nchunk, b, m), np.float32)
-    for c in prange(nchunk):
-        lo = c * step
-        hi = min(n, (c + 1) * step)
-        i = lo
-        while i + 4 <= hi:
-            h0 = H[i]
-            h1 = H[i + 1]
-            h2 = H[i + 2]
-            h3 = H[i + 3]
-            for r in range(b):
-                acc = part[c, r]
-                a0 = F[r, i]
-                a1 = F[r, i + 1]
-                a2 = F[r, i + 2]
-                a3 = F[r, i + 3]
-                for j in range(m):
-                    acc[j] += ((a0 * _half_to_float(h0[j]) + a1 * _half_to_float(h1[j]))
-                               + (a2 * _half_to_float(h2[j]) + a3 * _half_to_float(h3[j])))
-            i += 4
-        while i < hi:
-            h0 = H[i]
-            for r in range(b):
-                acc = part[c, r]
-                a0 = F[r, i]
-                for j in range(m):
-                    acc[j] += a0 * _half_to_float(h0[j])
+                    acc[j] += a0 * _widen(w0[j])
             i += 1
     for r in range(b):
         for j in range(m):
@@ -422,10 +396,7 @@ class BinaryProjector:
         else:
             out = np.empty((rows.shape[0], self.matrix.shape[1]), dtype=np.float32)
             numba.set_num_threads(min(self.threads, numba.config.NUMBA_NUM_THREADS))
-            if self.matrix_dtype == "float16":
-                _project_rows_half(rows, self.matrix, out)
-            else:
-                _project_rows(rows, self.matrix, out)
+            _project_rows(rows, self.matrix, out)  # float32 or binary16 storage (_widen)
         return out[0] if f.ndim == 1 else out
 
     def bits(self, feats: np.ndarray) -> np.ndarray:

@@ -14,6 +14,22 @@ import yaml
 from neoslam_stream.runtime.bus import key_for, open_session
 from neoslam_stream.runtime.messages import decode
 
+#: the cheapest real NeoSLAM: random AlexNet (no weights to load), sparse projection (no 265 MB
+#: matrix), small pose-cell network
+LIGHT = {"features": {"backbone": "random_alexnet"}, "projector": {"projection": "sparse"},
+         "pose_cells": {"pc_dim_xy": 11}}
+
+
+def light_config(mode: str, source: dict, **run: Any) -> dict:
+    """A run config of the LIGHT NeoSLAM pipeline in ``mode`` on ``source`` (``run`` overrides)."""
+    return {"run": {"pipeline": "neoslam", "topology": "pipeline", "mode": mode, "live": False,
+                    "startup_timeout": 240, **run},
+            "source": source, **LIGHT}
+
+
+def read_report(run_dir: Path) -> dict:
+    return json.loads((run_dir / "report.json").read_text())
+
 
 def start_run(tmp_path: Path, cfg: dict[str, Any], *args: str, run_dir: Path | None = None) -> subprocess.Popen:
     """``neoslam run -c <cfg> --out <run_dir> [args]`` in a child process (output captured)."""

@@ -7,11 +7,9 @@ counted exactly once by the stage that meets it, every good frame is processed.
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import time
-from pathlib import Path
 
 import numpy as np
 import psutil
@@ -19,27 +17,13 @@ import pytest
 import zenoh
 from badinput.corpus import bus_items, write_image_folder
 from runhelpers import attach, finish, start_run, wait_stats
+from runhelpers import light_config as _cfg
+from runhelpers import read_report as _report
 
 from neoslam_stream.evaluation import read_tum
 from neoslam_stream.runtime.bus import key_for
 
 pytestmark = [pytest.mark.zenoh, pytest.mark.slow]
-
-#: the cheapest real NeoSLAM: random AlexNet (no weights to load), sparse projection (no 265 MB
-#: matrix), small pose-cell network
-LIGHT = {"features": {"backbone": "random_alexnet"}, "projector": {"projection": "sparse"},
-         "pose_cells": {"pc_dim_xy": 11}}
-
-
-def _cfg(mode: str, source: dict, **run) -> dict:
-    return {"run": {"pipeline": "neoslam", "topology": "pipeline", "mode": mode, "live": False,
-                    "startup_timeout": 240, **run},
-            "source": source, **LIGHT}
-
-
-def _report(run_dir: Path) -> dict:
-    return json.loads((run_dir / "report.json").read_text())
-
 
 # ------------------------------------------------------------------------------ bad input
 def test_bad_input_corpus_through_the_running_pipeline(tmp_path):

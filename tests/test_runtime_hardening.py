@@ -10,35 +10,22 @@ final topic is lost), from hand-worked cases, or from an earlier run of the same
 from __future__ import annotations
 
 import errno
-import json
 import os
 import signal
 import time
-from pathlib import Path
 
 import numpy as np
 import psutil
 import pytest
 from runhelpers import attach, finish, start_run, wait_stats
+from runhelpers import light_config as _cfg
+from runhelpers import read_report as _report
 
 from neoslam_stream.evaluation import read_tum
 from neoslam_stream.runtime import files
 from neoslam_stream.runtime.bus import key_for
 from neoslam_stream.runtime.messages import Message, encode
 from neoslam_stream.runtime.monitor import FinalTracker, StatsCollector, build_report, write_report
-
-LIGHT = {"features": {"backbone": "random_alexnet"}, "projector": {"projection": "sparse"},
-         "pose_cells": {"pc_dim_xy": 11}}
-
-
-def _cfg(mode: str, source: dict, **run) -> dict:
-    return {"run": {"pipeline": "neoslam", "topology": "pipeline", "mode": mode, "live": False,
-                    "startup_timeout": 240, **run},
-            "source": source, **LIGHT}
-
-
-def _report(run_dir: Path) -> dict:
-    return json.loads((run_dir / "report.json").read_text())
 
 
 def _gone(p: psutil.Process) -> bool:

@@ -33,14 +33,7 @@ class FeatureNode(Node):
         return self.process_batch(topic, [msg])
 
     def process_batch(self, topic: str, msgs: Sequence[Message]) -> Output:
-        assert self.extractor is not None
-        keep, rgbs, strided = [], [], 0
-        for m in msgs:
-            if not self.extractor.keep(m.frame):
-                strided += 1
-                continue
-            rgbs.append(decode_rgb(m))
-            keep.append(m)
+        keep, rgbs, strided = self._decode_kept(msgs)
         try:
             feats = self.extractor.extract_batch(rgbs)
         except InvalidImage as exc:
@@ -49,6 +42,18 @@ class FeatureNode(Node):
         self.counters["strided"] += strided
         return [(VISUAL_FEATURES, m.derive(VISUAL_FEATURES, {"features": f, "backbone": self.extractor.backbone}))
                 for m, f in zip(keep, feats, strict=True)]
+
+    def _decode_kept(self, msgs: Sequence[Message]) -> tuple[list[Message], list, int]:
+        """The messages ``frame_stride`` keeps, their decoded RGB frames, and how many it removed."""
+        assert self.extractor is not None
+        keep, rgbs, strided = [], [], 0
+        for m in msgs:
+            if not self.extractor.keep(m.frame):
+                strided += 1
+                continue
+            rgbs.append(decode_rgb(m))
+            keep.append(m)
+        return keep, rgbs, strided
 
     def info(self) -> dict[str, Any]:
         if self.extractor is None:
@@ -84,14 +89,8 @@ class DeviceFrontEndNode(FeatureNode):
         self.projection = TorchProjection(BinaryProjector(self.projector_config), self.extractor.device)
 
     def process_batch(self, topic: str, msgs: Sequence[Message]) -> Output:
-        assert self.extractor is not None and self.projection is not None
-        keep, rgbs, strided = [], [], 0
-        for m in msgs:
-            if not self.extractor.keep(m.frame):
-                strided += 1
-                continue
-            rgbs.append(decode_rgb(m))
-            keep.append(m)
+        assert self.projection is not None
+        keep, rgbs, strided = self._decode_kept(msgs)
         bits: list = []
         if rgbs:
             try:

@@ -166,16 +166,7 @@ class PartSupervisor(Supervisor):
                     done.append(w)  # stopped by the primary's control message
             if len(done) == len(self.hosted):
                 return False
-            for w in self.hosted:
-                p = self.procs.get(w)
-                if w in done or p is None or p.is_alive():
-                    continue
-                n = self.restarts.get(w, 0)
-                if n >= self.cfg.run.max_restarts:
-                    raise RunError(f"worker {w!r} died (exit code {p.exitcode}) and was already "
-                                   f"restarted {n} times; giving up")
-                self._restart(w, p.exitcode)
-                self._wait_ready([w], self.cfg.run.startup_timeout)
+            self._restart_crashed(stopped=done)
 
     def _complete_report(self, interrupted: bool) -> dict[str, Any]:
         if self._part_token is not None:

@@ -30,6 +30,7 @@ import os
 import secrets
 import signal
 import time
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
@@ -372,10 +373,12 @@ class Supervisor:
             elif waited >= self.cfg.run.drain_s:
                 return False
 
-    def _restart_crashed(self) -> None:
+    def _restart_crashed(self, stopped: Collection[str] = ()) -> None:
+        """Restart the hosted workers that died (bounded); ``stopped``: workers that ended on
+        purpose (a split run's primary stopped them), not to be restarted."""
         for w in self.hosted:
             p = self.procs.get(w)
-            if p is None or p.is_alive():
+            if w in stopped or p is None or p.is_alive():
                 continue
             n = self.restarts.get(w, 0)
             if n >= self.cfg.run.max_restarts:

@@ -19,7 +19,6 @@ cached per (B, C) configuration. Run: ``.venv/bin/python bench/maps.py [--only N
 from __future__ import annotations
 
 import argparse
-import copy
 import hashlib
 import json
 import os
@@ -35,6 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from neoslam_stream.config import load_config  # noqa: E402
 from neoslam_stream.evaluation import evaluate_run  # noqa: E402
 from neoslam_stream.nodes.pipelines import build_plan  # noqa: E402
+from neoslam_stream.runtime.config import merge_dicts  # noqa: E402
 from neoslam_stream.runtime.local import LocalChain  # noqa: E402
 from neoslam_stream.runtime.messages import Message  # noqa: E402
 from neoslam_stream.tum import write_tum  # noqa: E402
@@ -238,16 +238,6 @@ def tuc_levers() -> dict[str, Any]:
     return res
 
 
-def merge(base: dict, over: dict) -> dict:
-    out = copy.deepcopy(base)
-    for k, v in over.items():
-        if isinstance(v, dict) and isinstance(out.get(k), dict):
-            out[k] = merge(out[k], v)
-        else:
-            out[k] = v
-    return out
-
-
 def base_config_dict() -> dict:
     """The paper profile's settings (configs/paper.yaml when it ships, else the settings the
     default had before issue #14)."""
@@ -289,7 +279,7 @@ def main() -> None:
     for name, over in LEVERS.items():
         if args.only is not None and name not in args.only:
             continue
-        cfg = FullRunConfig.model_validate(merge(base, over))
+        cfg = FullRunConfig.model_validate(merge_dicts(base, over))
         t0 = time.perf_counter()
         r = run_synthetic(cfg, data, CACHE / "runs" / name)
         r["wall_s"] = round(time.perf_counter() - t0, 1)

@@ -46,9 +46,9 @@ def bench_config(config: str | None, topology: str, mode: str, backbone: str | N
     if backbone:
         over["features"] = {"backbone": backbone}
     if overrides:
-        from .runtime.config import _merge
+        from .runtime.config import merge_dicts
 
-        over = _merge(over, overrides)
+        over = merge_dicts(over, overrides)
     return load_config(config or "default", over)
 
 
@@ -196,9 +196,9 @@ def scaling(config: str | None, frames: int, out: Path, backbone: str | None,
 
     over = {"source": {"params": {"frames": frames, "loop": True}}}
     if overrides:
-        from .runtime.config import _merge
+        from .runtime.config import merge_dicts
 
-        over = _merge(overrides, over)
+        over = merge_dicts(overrides, over)
     cfg = bench_config(config, "pipeline", "lossless", backbone, over)
     cfg.run.name = f"scaling-{frames}"
     print(f"scaling: {frames} frames lossless ...", flush=True)

@@ -154,7 +154,7 @@ def load_yaml_config(text: str | None, origin: str, model: type[BaseModel],
             raise ConfigError(f"{origin} must hold a mapping at the top level")
         data = loaded
     if overrides:
-        data = _merge(_without_other_kinds_params(data, overrides), overrides)
+        data = merge_dicts(_without_other_kinds_params(data, overrides), overrides)
     try:
         return model.model_validate(data)
     except ValidationError as exc:
@@ -173,11 +173,12 @@ def _without_other_kinds_params(data: dict[str, Any], over: dict[str, Any]) -> d
     return {**data, "source": {k: v for k, v in src.items() if k != "params"}}
 
 
-def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+def merge_dicts(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    """``base`` with ``over`` merged in, nested mappings merged key by key (neither is changed)."""
     out = dict(base)
     for k, v in over.items():
         if isinstance(v, dict) and isinstance(out.get(k), dict):
-            out[k] = _merge(out[k], v)
+            out[k] = merge_dicts(out[k], v)
         else:
             out[k] = v
     return out

@@ -42,31 +42,24 @@ def paper_config(overrides: dict):
 def run_inprocess(cfg, run_dir: Path) -> dict:
     """Every frame of the config's source through the in-process chain; the run folder as
     ``neoslam run`` writes it (templates.csv, trajectory.tum, map.json, groundtruth/odometry.tum)."""
-    import math
-
     import numpy as np
 
     from neoslam_stream.api import NeoSLAM, RatSLAM
     from neoslam_stream.sources.synthetic import SyntheticWorldSource
-    from neoslam_stream.tum import write_tum
+    from neoslam_stream.tum import integrate_odometry, write_tum
 
     run_dir.mkdir(parents=True, exist_ok=True)
     slam = (NeoSLAM if cfg.run.pipeline == "neoslam" else RatSLAM)(cfg, run_dir=run_dir)
     gt, odo = [], []
-    ox = oy = oth = 0.0
     t0 = time.perf_counter()
     for f in SyntheticWorldSource(**cfg.source.params):
         slam.step(f.image, odometry=f.odom, stamp=f.stamp, frame=f.frame)
         gt.append((f.stamp, *f.groundtruth))
-        v, w, dt = f.odom
-        oth += w * dt
-        ox += v * dt * math.cos(oth)
-        oy += v * dt * math.sin(oth)
-        odo.append((f.stamp, ox, oy, oth))
+        odo.append(f.odom)
     slam.finish()
     secs = time.perf_counter() - t0
     write_tum(run_dir / "groundtruth.tum", np.array(gt))
-    write_tum(run_dir / "odometry.tum", np.array(odo))
+    write_tum(run_dir / "odometry.tum", integrate_odometry([g[0] for g in gt], odo))
     (run_dir / "report.json").write_text(json.dumps({"source": {"kind": "synthetic"}}))
     info = slam.info()
     return {"frames_out": len(gt), "f_out": len(gt) / secs, "in_process": True,

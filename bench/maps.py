@@ -37,7 +37,7 @@ from neoslam_stream.nodes.pipelines import build_plan  # noqa: E402
 from neoslam_stream.runtime.config import merge_dicts  # noqa: E402
 from neoslam_stream.runtime.local import LocalChain  # noqa: E402
 from neoslam_stream.runtime.messages import Message  # noqa: E402
-from neoslam_stream.tum import write_tum  # noqa: E402
+from neoslam_stream.tum import integrate_odometry, write_tum  # noqa: E402
 
 CACHE = Path(os.environ.get("NEOSLAM_CACHE", "/tmp/neoslam_maps"))
 RESULTS = Path(__file__).parent / "results"
@@ -107,8 +107,6 @@ def sdrs(cfg: Any, data: dict[str, np.ndarray]) -> list[dict[str, Any]]:
 
 def run_synthetic(cfg: Any, data: dict[str, np.ndarray], run_dir: Path) -> dict[str, Any]:
     """D + back end on the cached SDRs of ``cfg``'s B and C; writes the run folder and evaluates it."""
-    import math
-
     seq = sdrs(cfg, data)
     run_dir.mkdir(parents=True, exist_ok=True)
     chain = LocalChain(_plan(cfg, ("A", "B", "C")), run_dir)
@@ -122,14 +120,7 @@ def run_synthetic(cfg: Any, data: dict[str, np.ndarray], run_dir: Path) -> dict[
     secs = time.perf_counter() - t0
     gt = np.column_stack([data["stamps"], data["gt"]])
     write_tum(run_dir / "groundtruth.tum", gt)
-    ox = oy = oth = 0.0
-    rows = []
-    for st, (v, w, dt) in zip(data["stamps"], data["odom"], strict=True):
-        oth += w * dt
-        ox += v * dt * math.cos(oth)
-        oy += v * dt * math.sin(oth)
-        rows.append((st, ox, oy, oth))
-    write_tum(run_dir / "odometry.tum", np.array(rows))
+    write_tum(run_dir / "odometry.tum", integrate_odometry(data["stamps"], data["odom"]))
     ev = evaluate_run(run_dir, plot=False)
     lc = ev["loop_closures"]
     # the final (relaxed) map: each experience at the true position of the frame that created it
@@ -173,8 +164,7 @@ def run_nordland(proj: dict, svc_list: list[dict], data: dict[str, Any]) -> list
     calibrated on summer as in the Nordland test) on the cached features; precision / recall."""
     from neoslam_stream.algorithms.neocortex import Neocortex
     from neoslam_stream.algorithms.projector import BinaryProjector
-    from neoslam_stream.algorithms.spatial_view import SpatialViewCells
-    from neoslam_stream.datasets.nordland import calibrate_theta_sigma, evaluate
+    from neoslam_stream.datasets.nordland import spatial_view_runs
 
     feats, ids, n = data["features"], data["ids"], data["n"]
     path = CACHE / f"nordland_sdr_{_key([proj, feats.shape])}.npz"
@@ -192,16 +182,8 @@ def run_nordland(proj: dict, svc_list: list[dict], data: dict[str, Any]) -> list
                 sdr.append(np.asarray(nc.compute(b)))
         np.savez(path, bits=np.concatenate(bits), bptr=np.cumsum([0] + [len(b) for b in bits]),
                  cells=np.concatenate(sdr), cptr=np.cumsum([0] + [len(c) for c in sdr]))
-    calibrated = calibrate_theta_sigma(bits[:n], ids, NORDLAND["tolerance"])
     out = []
-    for svc in svc_list:
-        svc = dict(svc)
-        if svc.get("theta_sigma") is None:
-            svc["theta_sigma"] = calibrated
-        d = SpatialViewCells(**svc)
-        res = [d.compute(c.astype(np.uint32)) for c in sdr]
-        r = evaluate([int(m["id"]) for m in res], [bool(m["is_loop_closure"]) for m in res], ids, n,
-                     NORDLAND["tolerance"])
+    for svc, _, _, r, _ in spatial_view_runs(bits, sdr, ids, n, svc_list, NORDLAND["tolerance"]):
         r.update({"svc": svc, "proj": proj, "places": n})
         out.append(r)
     return out

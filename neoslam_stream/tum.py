@@ -71,3 +71,14 @@ def write_tum(path: str | Path, rows: np.ndarray) -> None:
     with open(path, "w") as fh:
         for t, x, y, yaw in rows:
             fh.write(f"{t:.6f} {x:.6f} {y:.6f} 0 0 0 {np.sin(yaw / 2):.9f} {np.cos(yaw / 2):.9f}\n")
+
+
+def integrate_odometry(stamps: np.ndarray, odom: np.ndarray) -> np.ndarray:
+    """(stamp, x, y, yaw) rows of dead reckoning from (vtrans, vrot, dt) samples, heading first
+    (each sample turns by vrot*dt, then advances vtrans*dt along the new heading), starting at the
+    origin facing +x: the odometry.tum that sources write and the evaluation compares with."""
+    odom = np.asarray(odom, dtype=np.float64).reshape(-1, 3)
+    yaw = np.cumsum(odom[:, 1] * odom[:, 2])
+    step = odom[:, 0] * odom[:, 2]
+    return np.column_stack([np.asarray(stamps, dtype=np.float64), np.cumsum(step * np.cos(yaw)),
+                            np.cumsum(step * np.sin(yaw)), yaw])

@@ -21,7 +21,7 @@ import pytest
 from neoslam_stream.runtime.imageinfo import MAX_PIXELS, image_dimensions, too_large
 from neoslam_stream.sources import files as files_mod
 from neoslam_stream.sources.files import ImageFolderSource
-from neoslam_stream.tum import read_tum, read_tum_rows
+from neoslam_stream.tum import integrate_odometry, read_tum, read_tum_rows
 
 
 def _png(value: int, size=(8, 10)) -> bytes:
@@ -160,6 +160,13 @@ def test_a_run_on_a_folder_without_odometry_completes(tmp_path):
 
 
 # --- 3. odometry file rows -------------------------------------------------------------------------
+
+def test_dead_reckoning_turns_before_it_advances():
+    # hand-worked: 1 m east, then a quarter turn left with 2 m (taken along the new heading, north),
+    # then a quarter turn back with 0.5 m east (0.25 m/s for 2 s)
+    rows = integrate_odometry([0.0, 1.0, 2.0], [(1.0, 0.0, 1.0), (2.0, math.pi / 2, 1.0), (0.25, -math.pi / 4, 2.0)])
+    np.testing.assert_allclose(rows, [[0, 1, 0, 0], [1, 1, 2, math.pi / 2], [2, 1.5, 2, 0]], atol=1e-12)
+
 
 def test_tum_rows_bom_indented_comments_and_bad_rows_with_line_numbers(tmp_path):
     path = tmp_path / "odometry.tum"

@@ -138,78 +138,6 @@ def test_node_emits_templates_and_the_recorder_writes_them(tmp_path):
     assert lines[4] == "3,0.300000,1,1,1,6"
 
 
-def _brute_force(frames, theta_alpha, theta_rho, theta_sigma, omega):
-    """The paper's rule written with Python sets and a loop over every interval (no index)."""
-    unions, start, end, templates, out = [], [], [], [], []
-    n_templates, current = 0, -1
-    for t, y in enumerate(frames):
-        y = set(int(v) for v in y)
-        new = not unions or not (len(unions[-1] & y) >= theta_alpha and end[-1] - start[-1] < theta_rho)
-        if new:
-            unions.append(set(y))
-            start.append(t)
-            end.append(t)
-            templates.append(-1)
-        else:
-            unions[-1] |= y
-            end[-1] = t
-        scores = [len(u & y) for u in unions[: len(unions) - omega]]
-        best = max(range(len(scores)), key=lambda k: (scores[k], -k)) if scores else -1
-        if best >= 0 and scores[best] > theta_sigma:
-            template = templates[best]
-        elif new:
-            template, n_templates = n_templates, n_templates + 1
-        else:
-            template = current
-        if new:
-            templates[-1] = template
-        current = template
-        out.append(template)
-    return out
-
-
-def test_index_compaction_gives_the_same_templates_as_a_brute_force_scan(monkeypatch):
-    import neoslam_stream.algorithms.spatial_view as sv
-
-    # compact after every few frames, so scores come from the CSR part, the linked part and both
-    monkeypatch.setattr(sv, "COMPACT_MIN", 40)
-    rng = np.random.default_rng(3)
-    places = [rng.choice(400, 30, replace=False) for _ in range(12)]
-    frames = []
-    for _ in range(5):  # revisit the same 12 places, with noise
-        for p in places:
-            noisy = np.union1d(p[rng.random(30) > 0.1], rng.choice(400, 3))
-            frames.append(noisy)
-    params = dict(theta_alpha=24, theta_rho=2, theta_sigma=22, exclude_recent_intervals=2)
-    svc = sv.SpatialViewCells(sdr_size=400, **params)
-    got = [svc.compute(f)["id"] for f in frames]
-    svc.compact()  # waits for a background merge still running
-    assert svc.merges >= 1 and svc._post.shape[0] > 0  # merges did happen, in the background
-    expected = _brute_force(frames, params["theta_alpha"], params["theta_rho"], params["theta_sigma"],
-                            params["exclude_recent_intervals"])
-    assert got == expected
-    assert len(set(expected)) < len(frames)  # loop closures happened, so the test exercises them
-
-
-# ------------------------------------------------------------- bounded (sublinear) search (#16)
-
-def _route_stream(n_frames, n_places, seed, noise, cells=32):
-    """SDRs shaped like the neocortex's: 512 active columns of 2048, one winner cell in each, so
-    the posting lists are long and overlap like real ones. Frames drift through places (3 frames
-    a place, lap after lap: revisits) and each frame swaps a fraction ``noise`` of its cells for
-    random ones (another winner cell, another column)."""
-    rng = np.random.default_rng(seed)
-    base = [np.sort(rng.choice(2048, 512, replace=False)) * cells + rng.integers(0, cells, 512)
-            for _ in range(n_places)]
-    out = []
-    for t in range(n_frames):
-        s = base[(t // 3) % n_places].copy()
-        swap = rng.random(512) < noise
-        s[swap] = rng.choice(2048 * cells, int(swap.sum()), replace=False)
-        out.append(np.unique(s).astype(np.uint32))
-    return out
-
-
 def _brute_force_full(frames, theta_alpha, theta_rho, theta_sigma, omega):
     """Every output of compute() by the paper's rule with Python sets, scoring every interval:
     (id, is_loop_closure, best_interval, best_score) and the runner-up (interval, score)."""
@@ -242,6 +170,48 @@ def _brute_force_full(frames, theta_alpha, theta_rho, theta_sigma, omega):
             templates[-1] = template
         current = template
         out.append((template, loop, best if loop else -1, best_score, second, second_score))
+    return out
+
+
+def test_index_compaction_gives_the_same_templates_as_a_brute_force_scan(monkeypatch):
+    import neoslam_stream.algorithms.spatial_view as sv
+
+    # compact after every few frames, so scores come from the CSR part, the linked part and both
+    monkeypatch.setattr(sv, "COMPACT_MIN", 40)
+    rng = np.random.default_rng(3)
+    places = [rng.choice(400, 30, replace=False) for _ in range(12)]
+    frames = []
+    for _ in range(5):  # revisit the same 12 places, with noise
+        for p in places:
+            noisy = np.union1d(p[rng.random(30) > 0.1], rng.choice(400, 3))
+            frames.append(noisy)
+    params = dict(theta_alpha=24, theta_rho=2, theta_sigma=22, exclude_recent_intervals=2)
+    svc = sv.SpatialViewCells(sdr_size=400, **params)
+    got = [svc.compute(f)["id"] for f in frames]
+    svc.compact()  # waits for a background merge still running
+    assert svc.merges >= 1 and svc._post.shape[0] > 0  # merges did happen, in the background
+    expected = [o[0] for o in _brute_force_full(frames, params["theta_alpha"], params["theta_rho"],
+                                                params["theta_sigma"], params["exclude_recent_intervals"])]
+    assert got == expected
+    assert len(set(expected)) < len(frames)  # loop closures happened, so the test exercises them
+
+
+# ------------------------------------------------------------- bounded (sublinear) search (#16)
+
+def _route_stream(n_frames, n_places, seed, noise, cells=32):
+    """SDRs shaped like the neocortex's: 512 active columns of 2048, one winner cell in each, so
+    the posting lists are long and overlap like real ones. Frames drift through places (3 frames
+    a place, lap after lap: revisits) and each frame swaps a fraction ``noise`` of its cells for
+    random ones (another winner cell, another column)."""
+    rng = np.random.default_rng(seed)
+    base = [np.sort(rng.choice(2048, 512, replace=False)) * cells + rng.integers(0, cells, 512)
+            for _ in range(n_places)]
+    out = []
+    for t in range(n_frames):
+        s = base[(t // 3) % n_places].copy()
+        swap = rng.random(512) < noise
+        s[swap] = rng.choice(2048 * cells, int(swap.sum()), replace=False)
+        out.append(np.unique(s).astype(np.uint32))
     return out
 
 

@@ -24,7 +24,7 @@ def cmd_dataset_synthetic(args: argparse.Namespace) -> int:
     import cv2
 
     from ..sources.synthetic import SyntheticWorldSource
-    from ..tum import write_tum
+    from ..tum import integrate_odometry, write_tum
 
     out = Path(args.out)
     (out / "images").mkdir(parents=True, exist_ok=True)
@@ -36,19 +36,12 @@ def cmd_dataset_synthetic(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     gt, odo = [], []
-    import math
-
-    x = y = th = 0.0
     for sf in src:
         cv2.imwrite(str(out / "images" / f"{sf.frame:06d}.png"), sf.image[:, :, ::-1])
         gt.append((sf.stamp, *sf.groundtruth))
-        v, w, dt = sf.odom
-        th += w * dt
-        x += v * dt * math.cos(th)
-        y += v * dt * math.sin(th)
-        odo.append((sf.stamp, x, y, th))
+        odo.append(sf.odom)
     write_tum(out / "groundtruth.tum", gt)
-    write_tum(out / "odometry.tum", odo)
+    write_tum(out / "odometry.tum", integrate_odometry([g[0] for g in gt], odo))
     print(f"wrote {len(gt)} frames, groundtruth.tum and odometry.tum to {out}")
     return 0
 

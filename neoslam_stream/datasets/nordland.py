@@ -94,6 +94,24 @@ def evaluate(template_ids: list[int], loops: list[bool], source_ids: list[int], 
             "recall": correct / n_winter if n_winter else 0.0}
 
 
+def spatial_view_runs(bits: list[np.ndarray], sdrs: list[np.ndarray], ids: list[int], n: int,
+                      svc_params: list[dict], tolerance: int = 150, quantile: float = 99.9):
+    """D once per parameter set over one stream (the ``n`` summer frames, then winter): yields
+    (parameters, the SpatialViewCells, its outputs, :func:`evaluate`'s result, the calibrated
+    theta_sigma). A set whose theta_sigma is None gets the one calibrated on summer's bits."""
+    from ..algorithms.spatial_view import SpatialViewCells
+
+    calibrated = calibrate_theta_sigma(bits[:n], ids, tolerance, quantile)
+    for params in svc_params:
+        params = dict(params)
+        if params.get("theta_sigma") is None:
+            params["theta_sigma"] = calibrated
+        d = SpatialViewCells(**params)
+        out = [d.compute(c.astype(np.uint32)) for c in sdrs]
+        res = evaluate([int(m["id"]) for m in out], [bool(m["is_loop_closure"]) for m in out], ids, n, tolerance)
+        yield params, d, out, res, calibrated
+
+
 def run_frontend(backbone: str, step: int, svc_params: list[dict], tolerance: int = 150,
                  limit: int | None = None, neocortex: Any = "passthrough", projection: str = "gaussian",
                  seed: int = 42, centre_window: int = 0, min_std: float | None = None,
@@ -107,7 +125,6 @@ def run_frontend(backbone: str, step: int, svc_params: list[dict], tolerance: in
     from ..algorithms.features import VisualFeatureExtractor
     from ..algorithms.neocortex import Neocortex, NeocortexConfig
     from ..algorithms.projector import BinaryProjector
-    from ..algorithms.spatial_view import SpatialViewCells
 
     summer, winter, ids = load_frames(step, limit, min_std)
     fa = VisualFeatureExtractor(backbone=backbone, seed=seed, threads=1)
@@ -132,16 +149,9 @@ def run_frontend(backbone: str, step: int, svc_params: list[dict], tolerance: in
         for b in pb.bits_batch(feats):
             bits.append(b)
             sdrs.append(cells_of(b))
-    calibrated = calibrate_theta_sigma(bits[:n], ids, tolerance, quantile)
     results = []
-    for params in svc_params:
-        params = dict(params)
-        if params.get("theta_sigma") is None:
-            params["theta_sigma"] = calibrated
-        d = SpatialViewCells(**params)
-        out = [d.compute(c.astype(np.uint32)) for c in sdrs]
+    for params, d, out, res, calibrated in spatial_view_runs(bits, sdrs, ids, n, svc_params, tolerance, quantile):
         template_ids = [int(m["id"]) for m in out]
-        res = evaluate(template_ids, [bool(m["is_loop_closure"]) for m in out], ids, n, tolerance)
         created: dict[int, int] = {}
         for i, t in enumerate(template_ids[:n]):
             created.setdefault(t, ids[i])

@@ -61,6 +61,21 @@ def test_paper_run_is_byte_identical_to_the_reference(tmp_path):
     assert len(rows) == FRAMES and sum(r.split(",")[3] == "1" for r in rows) > 100
 
 
+@pytest.mark.zenoh
+def test_the_monolithic_topology_gives_the_reference_rows(tmp_path):
+    """One process for every stage computes what one process per stage computed: a frame's row of
+    templates.csv and trajectory.tum depends on earlier frames only, so a lossless run cut at
+    ``n`` frames must give the reference's first ``n`` rows byte for byte."""
+    n = 300
+    assert main(["run", "-c", "paper", "--topology", "monolithic", "--max-frames", str(n), "--out", str(tmp_path),
+                 "--no-live"]) == 0
+    assert json.loads((tmp_path / "report.json").read_text())["topology"] == "monolithic"
+    for name, header in (("templates.csv", 1), ("trajectory.tum", 0)):
+        got = (tmp_path / name).read_text().splitlines()
+        assert len(got) == n + header, name
+        assert got == (REF / name).read_text().splitlines()[: n + header], name
+
+
 def test_the_in_process_api_gives_the_same_bytes(tmp_path):
     from neoslam_stream import NeoSLAM, load_config
     from neoslam_stream.sources.synthetic import SyntheticWorldSource

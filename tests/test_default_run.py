@@ -1,7 +1,7 @@
 """The paper's profile, byte for byte: `neoslam run -c paper` (pipeline topology, one process per
 stage) and the in-process API (`NeoSLAM.step` with `load_config("paper")`) give exactly the templates
 and trajectory, and the same map (coordinates to 1e-9), that the default gave before the layout
-change (tests/data/README.md says where they come from). `configs/paper.yaml` holds the values
+change; the monolithic topology gives the same first 300 rows (tests/data/README.md says where they come from). `configs/paper.yaml` holds the values
 default.yaml had then (issue #14: the default may change, the paper's profile may not)."""
 
 from __future__ import annotations

@@ -427,17 +427,13 @@ def test_a_full_disk_costs_a_checkpoint_not_the_stage(tmp_path, monkeypatch, cap
 def test_killing_the_experience_map_without_checkpoints_keeps_the_trajectory_written(tmp_path):
     import json
 
-    from runhelpers import attach, finish, start_run, wait_stats
+    from runhelpers import attach, finish, light_config, start_run, wait_stats
 
     from neoslam_stream.evaluation import read_tum
 
     run_dir = tmp_path / "run"
-    cfg = {"run": {"pipeline": "neoslam", "topology": "pipeline", "mode": "realtime", "live": False,
-                   "startup_timeout": 240, "max_restarts": 1},
-           "source": {"kind": "synthetic", "params": {"seed": 0, "loop": True}, "rate": 10.0,
-                      "pacing": "fixed", "duration": 30.0},
-           "features": {"backbone": "random_alexnet"}, "projector": {"projection": "sparse"},
-           "pose_cells": {"pc_dim_xy": 11}}
+    cfg = light_config("realtime", {"kind": "synthetic", "params": {"seed": 0, "loop": True}, "rate": 10.0,
+                                    "pacing": "fixed", "duration": 30.0}, max_restarts=1)
     proc = start_run(tmp_path, cfg)
     session, run_id = attach(run_dir)
     try:

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from runhelpers import light_config
 
 from neoslam_stream.config import load_config
 from neoslam_stream.nodes.pipelines import build_plan
@@ -22,11 +23,7 @@ from neoslam_stream.runtime.parts import PartSupervisor, check_selection, parse_
 from neoslam_stream.runtime.topology import CONTROL_TOKEN_ENV, RunError, group_workers
 
 FRAMES = 30
-TINY = {"run": {"pipeline": "neoslam", "topology": "pipeline", "mode": "lossless", "live": False,
-                "startup_timeout": 240},
-        "source": {"kind": "synthetic", "params": {"seed": 0, "frames": FRAMES}},
-        "features": {"backbone": "random_alexnet"}, "projector": {"projection": "sparse"},
-        "pose_cells": {"pc_dim_xy": 11}}
+TINY = light_config("lossless", {"kind": "synthetic", "params": {"seed": 0, "frames": FRAMES}})
 
 
 def test_stage_lists_are_parsed_and_checked():

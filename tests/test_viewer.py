@@ -16,6 +16,8 @@ import yaml
 
 rerun_chunk = pytest.importorskip("rerun.chunk")
 
+from runhelpers import light_config  # noqa: E402
+
 from neoslam_stream.cli import main  # noqa: E402
 from neoslam_stream.tum import write_tum  # noqa: E402
 
@@ -144,11 +146,7 @@ def test_view_of_a_folder_without_outputs_is_one_error_line(tmp_path, capsys):
 @pytest.mark.slow
 def test_run_with_view_records_the_live_run(tmp_path):
     frames = 30
-    cfg = {"run": {"pipeline": "neoslam", "topology": "pipeline", "mode": "lossless", "live": False,
-                   "startup_timeout": 240},
-           "source": {"kind": "synthetic", "params": {"seed": 0, "frames": frames}},
-           "features": {"backbone": "random_alexnet"}, "projector": {"projection": "sparse"},
-           "pose_cells": {"pc_dim_xy": 11}}
+    cfg = light_config("lossless", {"kind": "synthetic", "params": {"seed": 0, "frames": frames}})
     (tmp_path / "cfg.yaml").write_text(yaml.safe_dump(cfg))
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}  # no window
     run_dir = tmp_path / "run"

@@ -54,35 +54,32 @@ def bench_b(reps: int, batch: int, threads: int) -> dict:
 
 
 def bench_b_storage(rounds: int, n: int = 64896) -> dict:
-    """B's Gaussian projection on ONE thread, float32 vs float16 storage of P, interleaved in one
-    process (a frame with one storage, then with the other, ``rounds`` times; medians), so both
-    see the same machine load. Also float16 with 2 and 4 frames per call (micro-batches: the node
-    gets every frame waiting in its queue, up to ``run.max_batch``), per frame."""
+    """B's Gaussian projection on ONE thread, float32, float16 and int8 storage of P, interleaved
+    in one process (each storage in turn, the order rotating, ``rounds`` times; medians), so all
+    see the same machine load; each with 1, 2 and 4 frames per call (micro-batches: the node gets
+    every frame waiting in its queue, up to ``run.max_batch``), per frame."""
     rng = np.random.default_rng(0)
     fs = rng.standard_normal((4, n)).astype(np.float32)
-    p32 = BinaryProjector(projection="gaussian", threads=1, input_dim=n)
-    p16 = BinaryProjector(projection="gaussian", threads=1, input_dim=n, matrix_dtype="float16")
-    p32.bits(fs[0])
-    p16.bits(fs[0])
-    t32, t16, t16b2, t16b4 = [], [], [], []
+    dtypes = ("float32", "float16", "int8")
+    projs = {d: BinaryProjector(projection="gaussian", threads=1, input_dim=n, matrix_dtype=d) for d in dtypes}
+    times: dict[tuple[str, int], list[float]] = {(d, b): [] for d in dtypes for b in (1, 2, 4)}
+    for p in projs.values():
+        p.warm_up()
     for r in range(rounds):
-        f = fs[r % 4]
-        for proj, out in ((p32, t32), (p16, t16)) if r % 2 else ((p16, t16), (p32, t32)):
-            t0 = time.perf_counter()
-            proj.bits(f)
-            out.append((time.perf_counter() - t0) * 1e3)
-        t0 = time.perf_counter()
-        p16.bits_batch(fs[:2])
-        t16b2.append((time.perf_counter() - t0) * 1e3 / 2)
-        t0 = time.perf_counter()
-        p16.bits_batch(fs)
-        t16b4.append((time.perf_counter() - t0) * 1e3 / 4)
-    m32, m16 = float(np.median(t32)), float(np.median(t16))
-    return {"b_ms_gaussian_batch1_float32_1thread": m32, "b_ms_gaussian_batch1_float16_1thread": m16,
-            "b_float16_over_float32": m16 / m32,
-            "b_ms_gaussian_float16_batch2_1thread": float(np.median(t16b2)),
-            "b_ms_gaussian_float16_batch4_1thread": float(np.median(t16b4)),
-            "b_storage_rounds": rounds}
+        order = dtypes[r % 3:] + dtypes[: r % 3]  # every storage goes first, second and last in turn
+        for d in order:
+            for b in (1, 2, 4):
+                t0 = time.perf_counter()
+                projs[d].bits_batch(fs[:b])
+                times[d, b].append((time.perf_counter() - t0) * 1e3 / b)
+    med = {k: float(np.median(v)) for k, v in times.items()}
+    out = {f"b_ms_gaussian_batch1_{d}_1thread": med[d, 1] for d in dtypes}
+    out.update({f"b_ms_gaussian_{d}_batch{b}_1thread": med[d, b] for d in dtypes for b in (2, 4)})
+    out.update({"b_float16_over_float32": med["float16", 1] / med["float32", 1],
+                "b_int8_over_float32": med["int8", 1] / med["float32", 1], "b_storage_rounds": rounds,
+                "b_storage_conditions": f"one thread, n = {n}, float32/float16/int8 interleaved in one "
+                                        f"process, {rounds} rounds, medians"})
+    return out
 
 
 def _loaded_svc(k: int) -> tuple[np.random.Generator, list[np.ndarray], SpatialViewCells]:
@@ -187,6 +184,8 @@ def main() -> None:
     ap.add_argument("--issue16", action="store_true",
                     help="only the measurements of issue #16 (B storage, D on real SDRs, float16 "
                          "agreement), merged into --out")
+    ap.add_argument("--part", choices=["b", "d"],
+                    help="with --issue16: only B (storage timings and agreement) or only D (real SDRs)")
     ap.add_argument("--timing-only", action="store_true",
                     help="re-measure A, B, D and keep the Nordland results already in --out")
     args = ap.parse_args()
@@ -196,17 +195,20 @@ def main() -> None:
         import real_sdrs
 
         res = dict(previous)
-        res.update(bench_b_storage(20 if args.quick else 40))
-        print("B storage", {k: v for k, v in res.items() if k.startswith("b_")}, flush=True)
+        if args.part != "d":
+            res.update(bench_b_storage(20 if args.quick else 40))
+            print("B storage", {k: v for k, v in res.items() if k.startswith("b_ms")}, flush=True)
         rec = real_sdrs.record_synthetic()
-        k = 20000 if args.quick else 100000
-        real = real_sdrs.bench_d_real(k, 100 if args.quick else 200, rec)
-        res[f"d_real_k{k}"] = real
-        res[f"d_ms_real_k{k}"] = real["compute_ms_bounded"]
-        print("D real", real, flush=True)
-        res["b_float16_agreement"] = {"synthetic": real_sdrs.float16_synthetic(rec),
-                                      "nordland": real_sdrs.float16_nordland(8 if args.quick else 4)}
-        print("float16 agreement", res["b_float16_agreement"], flush=True)
+        if args.part != "b":
+            k = 20000 if args.quick else 100000
+            real = real_sdrs.bench_d_real(k, 100 if args.quick else 200, rec)
+            res[f"d_real_k{k}"] = real
+            res[f"d_ms_real_k{k}"] = real["compute_ms_bounded"]
+            print("D real", real, flush=True)
+        for dtype in ("float16", "int8") if args.part != "d" else ():
+            res[f"b_{dtype}_agreement"] = {"synthetic": real_sdrs.storage_synthetic(rec, dtype),
+                                           "nordland": real_sdrs.storage_nordland(8 if args.quick else 4, dtype)}
+            print(f"{dtype} agreement", res[f"b_{dtype}_agreement"], flush=True)
         Path(args.out).write_text(json.dumps(res, indent=2))
         print(f"wrote {args.out}")
         return

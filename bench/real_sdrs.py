@@ -1,13 +1,13 @@
 """Real pipeline data for the front-end bench (#16): features, bits, SDRs and templates of the
-synthetic world recorded from the in-process NeoSLAM front end, and what float16 storage of B's
-matrix changes on them and on Nordland.
+synthetic world recorded from the in-process NeoSLAM front end, and what reduced-precision storage
+(float16, int8) of B's matrix changes on them and on Nordland.
 
 ``record_synthetic`` runs ``NeoSLAM(load_config("default"), backend=False)`` (A, B, C, D exactly as
 ``neoslam run`` configures them) over one route of the embedded synthetic world and keeps every
 frame's A features, B bits, C winner cells and D result. The recording is cached in /tmp (A's
 features are 88 kB a frame, too large for bench/results); it is regenerated when absent.
 
-Run alone: ``.venv/bin/python bench/real_sdrs.py`` (prints the float16 agreement figures).
+Run alone: ``.venv/bin/python bench/real_sdrs.py`` (prints the float16 and int8 agreement figures).
 """
 
 from __future__ import annotations
@@ -70,16 +70,16 @@ def _bit_agreement(a: list[np.ndarray], b: list[np.ndarray]) -> dict[str, float]
             "mean_fraction_bits_identical": float(np.mean(shared)), "min_fraction_bits_identical": float(np.min(shared))}
 
 
-def float16_synthetic(rec: dict[str, Any]) -> dict[str, Any]:
-    """Replay the recorded A features through B (float32 and float16 storage), C and D as
-    configured by ``default``; compare bits and templates with the recorded run."""
+def storage_synthetic(rec: dict[str, Any], dtype: str = "float16") -> dict[str, Any]:
+    """Replay the recorded A features through B (float32 and ``dtype`` storage: float16 or int8),
+    C and D as configured by ``default``; compare bits and templates with the recorded run."""
     from neoslam_stream import NeoSLAM, load_config
     from neoslam_stream.runtime.messages import Message
 
     out: dict[str, Any] = {}
     runs = {}
-    for dtype in ("float32", "float16"):
-        cfg = load_config("default", overrides={"projector": {"matrix_dtype": dtype}})
+    for storage in ("float32", dtype):
+        cfg = load_config("default", overrides={"projector": {"matrix_dtype": storage}})
         slam = NeoSLAM(cfg, backend=False)
         bits, ids, loops = [], [], []
         for i, f in enumerate(rec["features"]):
@@ -89,25 +89,25 @@ def float16_synthetic(rec: dict[str, Any]) -> dict[str, Any]:
             ids.append(int(produced["visual_template"]["id"]))
             loops.append(bool(produced["visual_template"]["is_loop_closure"]))
         slam.finish()
-        runs[dtype] = (bits, np.asarray(ids), np.asarray(loops))
+        runs[storage] = (bits, np.asarray(ids), np.asarray(loops))
     b32, i32, l32 = runs["float32"]
-    b16, i16, l16 = runs["float16"]
+    b16, i16, l16 = runs[dtype]
     out["replay_float32_equals_recording"] = bool(np.array_equal(i32, rec["ids"]))
     out["bits"] = _bit_agreement(b32, b16)
     out["templates_identical"] = bool(np.array_equal(i32, i16))
     out["frames_with_same_template"] = int(np.sum(i32 == i16))
     out["loop_closures_float32"] = int(l32.sum())
-    out["loop_closures_float16"] = int(l16.sum())
+    out[f"loop_closures_{dtype}"] = int(l16.sum())
     out["loop_closure_frames_identical"] = bool(np.array_equal(l32, l16))
-    out["templates_float32"], out["templates_float16"] = int(i32.max() + 1), int(i16.max() + 1)
+    out["templates_float32"], out[f"templates_{dtype}"] = int(i32.max() + 1), int(i16.max() + 1)
     out["backbone"] = rec["backbone"]
     out["frames"] = len(i32)
     return out
 
 
-def float16_nordland(step: int = 4) -> dict[str, Any]:
+def storage_nordland(step: int = 4, dtype: str = "float16") -> dict[str, Any]:
     """The main Nordland configuration of bench/frontend.py (EfficientNet-Lite0, centred B with
-    window 100, pass-through C, calibrated theta_sigma) with B's matrix in float32 and in float16."""
+    window 100, pass-through C, calibrated theta_sigma) with B's matrix in float32 and in ``dtype``."""
     from neoslam_stream.algorithms.features import VisualFeatureExtractor
     from neoslam_stream.algorithms.projector import BinaryProjector
     from neoslam_stream.algorithms.spatial_view import SpatialViewCells
@@ -128,29 +128,30 @@ def float16_nordland(step: int = 4) -> dict[str, Any]:
     feats = np.concatenate([fa.extract_batch(frames[k:k + 8]) for k in range(0, len(frames), 8)])
     res: dict[str, Any] = {"places": n, "frames": len(frames), "step": step, "backbone": fa.backbone}
     bits = {}
-    for dtype in ("float32", "float16"):
-        pb = BinaryProjector(input_dim=fa.output_dim, matrix_dtype=dtype, centre_window=100)
-        bits[dtype] = [b for k in range(0, len(feats), 8) for b in pb.bits_batch(feats[k:k + 8])]
-    res["bits"] = _bit_agreement(bits["float32"], bits["float16"])
+    for storage in ("float32", dtype):
+        pb = BinaryProjector(input_dim=fa.output_dim, matrix_dtype=storage, centre_window=100)
+        bits[storage] = [b for k in range(0, len(feats), 8) for b in pb.bits_batch(feats[k:k + 8])]
+    res["bits"] = _bit_agreement(bits["float32"], bits[dtype])
     tids = {}
-    for dtype, b in bits.items():
+    for storage, b in bits.items():
         theta = calibrate_theta_sigma(b[:n], ids, 150)
         d = SpatialViewCells(theta_alpha=384, theta_rho=3, exclude_recent_intervals=3, theta_sigma=theta)
         out = [d.compute(passthrough_neocortex(x)) for x in b]
         t = [int(m["id"]) for m in out]
         lo = [bool(m["is_loop_closure"]) for m in out]
         ev = evaluate(t, lo, ids, n, 150)
-        res[dtype] = {"theta_sigma_calibrated": theta, "templates": d.n_templates, **ev}
-        tids[dtype] = (np.asarray(t), np.asarray(lo))
-    res["templates_identical"] = bool(np.array_equal(tids["float32"][0], tids["float16"][0]))
-    res["loop_closure_frames_identical"] = bool(np.array_equal(tids["float32"][1], tids["float16"][1]))
+        res[storage] = {"theta_sigma_calibrated": theta, "templates": d.n_templates, **ev}
+        tids[storage] = (np.asarray(t), np.asarray(lo))
+    res["templates_identical"] = bool(np.array_equal(tids["float32"][0], tids[dtype][0]))
+    res["loop_closure_frames_identical"] = bool(np.array_equal(tids["float32"][1], tids[dtype][1]))
     return res
 
 
 if __name__ == "__main__":
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     r = record_synthetic()
-    print(json.dumps({"synthetic": float16_synthetic(r), "nordland": float16_nordland()}, indent=2))
+    print(json.dumps({dtype: {"synthetic": storage_synthetic(r, dtype), "nordland": storage_nordland(4, dtype)}
+                      for dtype in ("float16", "int8")}, indent=2))
 
 
 def grow_index(cells: list[np.ndarray], k_target: int, swap: float = 0.05, seed: int = 0) -> tuple[Any, list]:

@@ -7,7 +7,7 @@ when the RSS curve flattens: the report gives the growth rate over the second ha
 (MB per hour) next to the state the stages keep (TM segments/synapses, spatial-view intervals,
 experiences), which must grow with new places only.
 
-Run: ``.venv/bin/python bench/soak.py [--duration 3600] [--rate 30] [--out bench/results/soak.json]``.
+Run: ``.venv/bin/python bench/soak.py [--duration 3600] [--rate 30] [--matrix-dtype int8] [--out bench/results/soak.json]``.
 Also writes soak.png next to the JSON.
 """
 
@@ -93,6 +93,8 @@ def main() -> None:
     ap.add_argument("--every", type=float, default=60.0, help="seconds between two samples")
     ap.add_argument("--config", default=None)
     ap.add_argument("--backbone", default="random_alexnet")
+    ap.add_argument("--matrix-dtype", choices=["float32", "float16", "int8"],
+                    help="storage of B's Gaussian matrix (projector.matrix_dtype; default: the config's)")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "soak.json"))
     ap.add_argument("--from-run", help="analyse this finished soak run folder instead of running one")
     args = ap.parse_args()
@@ -104,11 +106,13 @@ def main() -> None:
         report = json.loads((run_dir / "report.json").read_text())
         row = summarise(report, "pipeline", args.rate, args.duration)
     else:
-        (row,) = rate_sweep(args.config, [args.rate], args.duration, ["pipeline"], work, args.backbone)
+        overrides = {"projector": {"matrix_dtype": args.matrix_dtype}} if args.matrix_dtype else None
+        (row,) = rate_sweep(args.config, [args.rate], args.duration, ["pipeline"], work, args.backbone, overrides)
     rows = minutes(run_dir / "stats.jsonl", args.every)
     res = {"rate": args.rate, "duration_s": args.duration, "frames_in": row["frames_in"],
            "frames_out": row["frames_processed"], "loss": row["loss"], "errors": row["errors"],
            "restarts": row["restarts"], "backbone": row["backbone"],
+           "matrix_dtype": row.get("matrix_dtype"), "max_batch": row.get("max_batch"),
            "rss_total_mb_first": rows[0]["rss_total_mb"] if rows else None,
            "rss_total_mb_last": rows[-1]["rss_total_mb"] if rows else None,
            "rss_growth_mb_per_hour_second_half": growth_per_hour(rows),

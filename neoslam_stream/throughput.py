@@ -128,6 +128,9 @@ def rate_sweep(config: str | None, rates: list[float], duration: float, topologi
         if res.interrupted:  # Ctrl-C / SIGTERM stops the bench, not just the run under way
             raise KeyboardInterrupt(f"interrupted during {topo} at {rate:g} FPS")
         row = summarise(res.report, topo, rate, duration)
+        # what B computed and how many waiting frames a stage may take at once (docs/performance.md)
+        row.update({"projection": cfg.projector.projection, "matrix_dtype": cfg.projector.matrix_dtype,
+                    "max_batch": cfg.run.max_batch})
         runs.append(row)
         if progress:
             print(f"      processed {row['frames_processed']} of {row['frames_in']}, loss {100 * row['loss']:.2f} %, "

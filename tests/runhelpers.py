@@ -74,3 +74,35 @@ def wait_stats(session, run_id: str, stage: str, timeout: float = 240.0, until=N
 def finish(proc: subprocess.Popen, timeout: float = 400.0) -> str:
     out, _ = proc.communicate(timeout=timeout)
     return out
+
+
+#: the synthetic world looped at 10 FPS in real time: a run that goes on until it is stopped
+LOOPING_10FPS = {"kind": "synthetic", "params": {"seed": 0, "loop": True}, "rate": 10.0, "pacing": "fixed"}
+
+
+def start_looping_run(tmp_path: Path, processed: int) -> tuple[subprocess.Popen, list]:
+    """A real-time LIGHT run on :data:`LOOPING_10FPS` in ``tmp_path/run``, returned once its
+    experience map has processed ``processed`` actions, with the run's child processes then."""
+    import psutil
+
+    proc = start_run(tmp_path, light_config("realtime", LOOPING_10FPS))
+    session, run_id = attach(tmp_path / "run")
+    try:
+        wait_stats(session, run_id, "experience_map", until=lambda s: s.get("processed", 0) >= processed)
+    finally:
+        session.close()
+    return proc, psutil.Process(proc.pid).children(recursive=True)
+
+
+def still_running(processes: list) -> list:
+    """The psutil processes of ``processes`` that run (neither exited nor zombies)."""
+    import psutil
+
+    alive = []
+    for p in processes:
+        try:
+            if p.is_running() and p.status() != psutil.STATUS_ZOMBIE:
+                alive.append(p)
+        except psutil.NoSuchProcess:
+            pass
+    return alive

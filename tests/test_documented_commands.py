@@ -68,6 +68,10 @@ VALIDATE = {
     "--out bench/results/throughput_sparse",
     "neoslam bench throughput --rates \"\" --scaling 20000 --out bench/results/throughput",
     "neoslam bench throughput --scaling 20000",
+    "neoslam bench throughput --rates 30,35,40,45,50,60 --duration 30 --topology both "
+    "--out bench/results/throughput_batched",
+    "neoslam bench throughput --rates 45,60 --duration 30 --topology pipeline --matrix-dtype int8 "
+    "--out bench/results/throughput_int8",
     "neoslam run -c paper",
     "neoslam run --oracle-templates",
     "neoslam run --oracle-templates --oracle-radius 0.25 --max-frames 1200",

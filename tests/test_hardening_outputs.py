@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from neoslam_stream.algorithms.errors import InvalidInput
+from neoslam_stream.config import load_config
 from neoslam_stream.nodes.recorder import JOURNAL, TEMPLATES_HEADER, RecorderNode
 from neoslam_stream.nodes.topics import EXPERIENCE_MAP, EXPERIENCE_POSE, VISUAL_TEMPLATE
 from neoslam_stream.runtime import files as files_mod
@@ -40,6 +41,7 @@ class ProbeNode(Node):
         super().__init__()
         self.batchable = batchable
         self.seen: list[int] = []
+        self.batches: list[list[int]] = []
 
     def process(self, topic, msg):
         what = msg["what"]
@@ -55,6 +57,7 @@ class ProbeNode(Node):
         return []
 
     def process_batch(self, topic, msgs):
+        self.batches.append([m.frame for m in msgs])
         if any(m["what"] != "ok" for m in msgs):
             raise StageInputError("a frame of the batch is bad")
         self.seen += [m.frame for m in msgs]
@@ -77,7 +80,8 @@ class FakeBus:
 
 
 def _worker(tmp_path: Path, spec: NodeSpec, **kw) -> Worker:
-    w = Worker(WorkerSpec(name=spec.name, stages=[spec], run="test-run", run_dir=str(tmp_path), lossless=True,
+    kw.setdefault("lossless", True)
+    w = Worker(WorkerSpec(name=spec.name, stages=[spec], run="test-run", run_dir=str(tmp_path),
                           checkpoint_dir=str(tmp_path / "checkpoint"), **kw))
     w.build()
     w.setup()
@@ -181,6 +185,25 @@ def test_a_bad_frame_in_a_micro_batch_is_counted_once(tmp_path):
     assert sum(st["error_causes"].values()) == st["errors"]  # each bad frame once, not batch + frame
     assert st["received"] == len(kinds) and st["processed"] == 4
     assert w.stages[0].adapter.seen == [0, 2, 4, 5]
+
+
+def test_realtime_workers_batch_the_frames_waiting_in_their_ring(tmp_path):
+    # #16: a stage that falls behind in a real-time run gets every frame its drop-oldest ring
+    # still holds in one call (one pass over B's matrix for all of them), as in lossless runs
+    from neoslam_stream.nodes.pipelines import build_plan
+    from neoslam_stream.runtime.topology import Supervisor
+
+    w = _worker(tmp_path, NodeSpec("probe", f"{__name__}:make_probe", {"batchable": True}), max_batch=8,
+                lossless=False)
+    w.queue = InputQueue({"probe": 3}, lossless=False)
+    for f in range(5):  # the ring keeps the newest three
+        w.queue.put("probe", _probe(f), time.time())
+    w.handle(*w.queue.get(0.1))
+    assert w.stages[0].adapter.batches == [[2, 3, 4]]
+    assert _stats(w)["processed"] == 3
+    cfg = load_config("default", {"run": {"mode": "realtime", "max_batch": 5, "live": False}})
+    sup = Supervisor(cfg, build_plan(cfg), tmp_path / "run")
+    assert {sup.worker_spec(w).max_batch for w in sup.groups} == {5}
 
 
 def test_error_causes_always_add_up_to_the_errors(tmp_path):

@@ -220,7 +220,80 @@ def test_bin_round_trip_with_float16_storage(tmp_path):
     full = P.BinaryProjector(input_dim=40, matrix_path=str(path))
     np.testing.assert_array_equal(full.matrix_float32(), m)
     with pytest.raises(ValueError, match="literal_error|float32"):
-        P.BinaryProjector(input_dim=40, matrix_dtype="int8")
+        P.BinaryProjector(input_dim=40, matrix_dtype="int4")
+
+
+# ------------------------------------------------------------------ int8 storage of P (#16)
+
+def test_int8_storage_rounds_the_same_draws_to_a_grid_of_max_over_127():
+    ref = P.BinaryProjector(input_dim=3001, seed=4)
+    i8 = P.BinaryProjector(input_dim=3001, seed=4, matrix_dtype="int8")
+    assert i8.matrix.dtype == np.int8 and i8.matrix.nbytes == ref.matrix.nbytes // 4
+    peak = float(np.abs(ref.matrix).max())
+    assert i8.matrix_scale == pytest.approx(peak / 127, rel=1e-12)
+    assert np.abs(i8.matrix).max() == 127  # the largest |entry| maps to the grid's end
+    # every entry is the nearest grid point of its float32 draw: error at most half a step
+    err = np.abs(i8.matrix.astype(np.float64) * i8.matrix_scale - ref.matrix.astype(np.float64))
+    assert err.max() <= i8.matrix_scale / 2 * (1 + 1e-9)
+    np.testing.assert_allclose(i8.matrix_float32(), i8.matrix.astype(np.float64) * i8.matrix_scale, rtol=1e-7)
+
+
+def test_int8_projection_is_the_exact_integer_product_of_the_rounded_features():
+    # the definition: x = rint(f / s_f), s_f = max|f| / 32767; d = s_f s_P (x q), summed exactly.
+    # numpy's int64 matrix product is the reference (exact integers); a zero frame gives d = 0
+    i8 = P.BinaryProjector(input_dim=1001, seed=3, matrix_dtype="int8")
+    F = np.random.default_rng(1).standard_normal((4, 1001)).astype(np.float32) * 50
+    F[2] = 0.0
+    F[3, 7] = 1e6  # one huge feature: the others round to few levels, still exact
+    x = np.empty((4, 1001), np.int64)
+    s_f = np.abs(F.astype(np.float64)).max(axis=1) / 32767
+    for r in range(4):
+        x[r] = np.rint(F[r] / s_f[r]) if s_f[r] > 0 else 0
+    assert np.abs(x).max() == 32767
+    sums = x @ i8.matrix.astype(np.int64)
+    expected = sums * (s_f * i8.matrix_scale)[:, None]
+    np.testing.assert_array_equal(i8._project(F), expected)
+    np.testing.assert_array_equal(i8.project(F), expected.astype(np.float32))
+    for r, bits in enumerate(i8.bits_batch(F)):
+        np.testing.assert_array_equal(bits, P.slsbh(expected[r]))
+
+
+def test_int8_kernel_accumulates_extreme_values_without_overflow():
+    # |x| = 32767, |q| = 127 on every row: 3000 rows sum to 1.25e10 (past int32), exactly
+    n = 3000
+    X = np.full((2, n), 32767, np.int32)
+    X[1] = -32767
+    Q = np.full((n, 1024), 127, np.int8)
+    Q[:, 1] = -127
+    out = np.empty((2, 1024), np.int64)
+    P._project_rows_int8(X, Q, out)
+    assert out[0, 0] == n * 32767 * 127 and out[0, 1] == -n * 32767 * 127
+    assert out[1, 0] == -n * 32767 * 127
+
+
+def test_int8_storage_does_not_depend_on_batching_or_threads():
+    bp = P.BinaryProjector(input_dim=3001, seed=4, matrix_dtype="int8")
+    F = np.random.default_rng(5).standard_normal((8, 3001)).astype(np.float32)
+    whole = bp._project(F)
+    for size in (1, 3, 5):
+        parts = np.concatenate([bp._project(F[i:i + size]) for i in range(0, 8, size)])
+        np.testing.assert_array_equal(parts, whole)
+    two = P.BinaryProjector(input_dim=3001, seed=4, matrix_dtype="int8", threads=2)
+    np.testing.assert_array_equal(two._project(F), whole)
+
+
+def test_bin_import_with_int8_storage(tmp_path):
+    m = P.gaussian_matrix(40, seed=1)
+    path = tmp_path / "randomMatrix.bin"
+    P.save_bin(m, path)
+    bp = P.BinaryProjector(input_dim=40, matrix_path=str(path), matrix_dtype="int8")
+    generated = P.BinaryProjector(input_dim=40, seed=1, matrix_dtype="int8")
+    # the same draws through the file or the seed give the same rounded matrix
+    np.testing.assert_array_equal(bp.matrix, generated.matrix)
+    assert bp.matrix_scale == generated.matrix_scale
+    out = tmp_path / "exported.bin"
+    P.save_bin(bp.matrix_float32(), out)  # export stays float32, with the rounded values
+    np.testing.assert_array_equal(P.load_bin(out, 40), bp.matrix_float32())
 
 
 # ------------------------------------------------------------------ B in torch on a device (#16)

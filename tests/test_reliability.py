@@ -16,7 +16,7 @@ import psutil
 import pytest
 import zenoh
 from badinput.corpus import bus_items, write_image_folder
-from runhelpers import attach, finish, start_run, wait_stats
+from runhelpers import attach, finish, start_looping_run, start_run, still_running, wait_stats
 from runhelpers import light_config as _cfg
 from runhelpers import read_report as _report
 
@@ -201,14 +201,7 @@ def test_resume_gives_the_trajectory_of_an_uninterrupted_run(tmp_path):
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_signal_flushes_outputs_and_leaves_no_orphans(tmp_path, sig):
     run_dir = tmp_path / "run"
-    proc = start_run(tmp_path, _cfg("realtime", {"kind": "synthetic", "params": {"seed": 0, "loop": True},
-                                                 "rate": 10.0, "pacing": "fixed"}))
-    session, run_id = attach(run_dir)
-    try:
-        wait_stats(session, run_id, "experience_map", until=lambda s: s.get("processed", 0) >= 10)
-    finally:
-        session.close()
-    children = psutil.Process(proc.pid).children(recursive=True)
+    proc, children = start_looping_run(tmp_path, processed=10)
     assert len(children) >= 8  # monitor, six workers, source
     proc.send_signal(sig)
     finish(proc, timeout=300)
@@ -222,26 +215,19 @@ def test_signal_flushes_outputs_and_leaves_no_orphans(tmp_path, sig):
     assert (run_dir / "map.json").stat().st_size > 0
     assert len((run_dir / "templates.csv").read_text().splitlines()) - 1 == rep["stages"]["D"]["processed"]
     time.sleep(0.5)
-    alive = [c for c in children if c.is_running() and c.status() != psutil.STATUS_ZOMBIE]
+    alive = still_running(children)
     assert alive == [], f"orphans left: {alive}"
 
 
 def test_second_sigint_forces_exit_without_orphans(tmp_path):
-    proc = start_run(tmp_path, _cfg("realtime", {"kind": "synthetic", "params": {"seed": 0, "loop": True},
-                                                 "rate": 10.0, "pacing": "fixed"}))
-    session, run_id = attach(tmp_path / "run")
-    try:
-        wait_stats(session, run_id, "experience_map", until=lambda s: s.get("processed", 0) >= 3)
-    finally:
-        session.close()
-    children = psutil.Process(proc.pid).children(recursive=True)
+    proc, children = start_looping_run(tmp_path, processed=3)
     proc.send_signal(signal.SIGINT)
     time.sleep(0.05)
     proc.send_signal(signal.SIGINT)
     finish(proc, timeout=120)
     assert proc.returncode == 130
     time.sleep(1.0)
-    alive = [c for c in children if c.is_running() and c.status() != psutil.STATUS_ZOMBIE]
+    alive = still_running(children)
     assert alive == [], f"orphans left: {alive}"
 
 

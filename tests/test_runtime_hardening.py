@@ -17,7 +17,7 @@ import time
 import numpy as np
 import psutil
 import pytest
-from runhelpers import attach, finish, start_run, wait_stats
+from runhelpers import attach, finish, start_looping_run, start_run, still_running, wait_stats
 from runhelpers import light_config as _cfg
 from runhelpers import read_report as _report
 
@@ -28,41 +28,25 @@ from neoslam_stream.runtime.messages import Message, encode
 from neoslam_stream.runtime.monitor import FinalTracker, StatsCollector, build_report, write_report
 
 
-def _gone(p: psutil.Process) -> bool:
-    try:
-        return not p.is_running() or p.status() == psutil.STATUS_ZOMBIE
-    except psutil.NoSuchProcess:
-        return True
-
-
 # ------------------------------------------------------------------------------ 1. supervisor death
 @pytest.mark.slow
 @pytest.mark.zenoh
 def test_killing_the_supervisor_takes_every_process_of_the_run_with_it(tmp_path):
-    run_dir = tmp_path / "run"
-    proc = start_run(tmp_path, _cfg("realtime", {"kind": "synthetic", "params": {"seed": 0, "loop": True},
-                                                 "rate": 10.0, "pacing": "fixed"}))
-    session, run_id = attach(run_dir)
-    try:
-        wait_stats(session, run_id, "experience_map", until=lambda s: s.get("processed", 0) >= 3)
-    finally:
-        session.close()
-    children = psutil.Process(proc.pid).children(recursive=True)
+    proc, children = start_looping_run(tmp_path, processed=3)
     assert len(children) >= 8  # monitor, six workers, source
     try:
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait(timeout=30)
         deadline = time.monotonic() + 90  # generous: a liveness bound, not a timing claim
-        while time.monotonic() < deadline and not all(_gone(c) for c in children):
+        while time.monotonic() < deadline and still_running(children):
             time.sleep(0.5)
-        alive = [c for c in children if not _gone(c)]
+        alive = still_running(children)
         assert alive == [], f"processes left running after the supervisor died: {alive}"
         # the stages flushed on their way out: what the map processed is on disk
-        assert (run_dir / "trajectory.tum").stat().st_size > 0
+        assert (tmp_path / "run" / "trajectory.tum").stat().st_size > 0
     finally:
-        for c in children:  # whatever the outcome, leave nothing of ours behind
-            if not _gone(c):
-                c.kill()
+        for c in still_running(children):  # whatever the outcome, leave nothing of ours behind
+            c.kill()
         proc.stdout.close()
 
 

@@ -21,6 +21,15 @@ entries are N(0, 1) draws with 11 significant bits), independent of batch size a
 The ``.bin`` file stays float32 (import rounds, :meth:`BinaryProjector.matrix_float32` exports).
 Default float32: measured agreement and closures in docs/performance.md.
 
+``matrix_dtype: int8`` stores P as q = rint(P / s_P), s_P = max|P| / 127 (66 MB: a quarter of the
+bytes), and rounds each feature vector to 16-bit integers, x = rint(f / s_f) with
+s_f = max|f| / 32767 (a relative error of 1.5e-5 of the largest feature, far below the matrix's
+rounding). d = s_f s_P (x q) is then summed exactly in integers (int32 over blocks of rows, int64
+across blocks): the bits do not depend on summation order, batch size, thread count or machine, and
+the kernel's multiply-adds run on integer vector units instead of widening every entry to float.
+It is still a Gaussian projection (N(0, 1) draws on a grid of max|P| / 127, about 0.04 standard
+deviations); agreement with float32 and its effect on closures: docs/performance.md.
+
 ``projection: sparse`` is Li et al.'s very sparse random projection (entries +-sqrt(1/density) with
 density 1/sqrt(n), zero otherwise), seeded, as a scipy.sparse matrix: ~1/255 of the work.
 
@@ -66,9 +75,10 @@ class ProjectorConfig(BaseModel):
     #: running-mean window W for feature centring; 0 = off (the paper)
     centre_window: int = Field(0, ge=0)
     threads: int = Field(1, ge=1)
-    #: storage precision of the Gaussian matrix P: float32 (265 MB, the reference) or float16
-    #: (133 MB, half the memory traffic per frame; every product still accumulates in float32)
-    matrix_dtype: Literal["float32", "float16"] = "float32"
+    #: storage precision of the Gaussian matrix P: float32 (265 MB, the reference), float16
+    #: (133 MB, half the memory traffic per frame; every product still accumulates in float32) or
+    #: int8 (66 MB; 16-bit integer features, exact integer sums: see the module docstring)
+    matrix_dtype: Literal["float32", "float16", "int8"] = "float32"
     #: where B computes: ``cpu`` = the fixed-order numba kernel (default); ``cuda``, ``cuda:N`` or
     #: ``auto`` (cuda when torch sees a GPU, else cpu) = torch on that device, fused with stage A
     #: in one node so that only the bits leave the device (see :class:`TorchProjection`)
@@ -93,6 +103,63 @@ def gaussian_matrix(n: int, seed: int, m: int = N_PROJ, half: bool = False) -> n
             rng.standard_normal((stop - start, m), dtype=np.float32, out=chunk)
             out[start:stop] = chunk.astype(np.float16).view(np.uint16)
     return out
+
+
+#: features are rounded to integers of at most this magnitude for the int8 kernel (16 bits)
+FEATURE_LEVELS = 32767
+#: the int8 matrix's entries lie in [-MATRIX_LEVELS, MATRIX_LEVELS]
+MATRIX_LEVELS = 127
+#: rows of P summed in int32 before the int64 total: |x q| <= 32767 * 127 per row, so 256 rows
+#: stay below 2^31 (1.07e9 < 2.15e9) whatever the data
+_INT_BLOCK = 256
+
+
+def _chunks(n: int):
+    for start in range(0, n, _CHUNK_ROWS):
+        yield start, min(n, start + _CHUNK_ROWS)
+
+
+def quantise_int8(matrix: np.ndarray) -> tuple[np.ndarray, float]:
+    """(q int8, s_P) with q = rint(P / s_P), s_P = max|P| / 127, row chunk by row chunk (no full-size
+    temporary; ``matrix`` may be a memory map of a ``.bin`` file)."""
+    peak = 0.0
+    for start, stop in _chunks(matrix.shape[0]):
+        peak = max(peak, float(np.max(np.abs(matrix[start:stop]), initial=0.0)))
+    scale = peak / MATRIX_LEVELS if peak > 0 else 1.0
+    out = np.empty(matrix.shape, dtype=np.int8)
+    for start, stop in _chunks(matrix.shape[0]):
+        out[start:stop] = np.rint(np.asarray(matrix[start:stop], dtype=np.float64) / scale)
+    return out, scale
+
+
+def gaussian_matrix_int8(n: int, seed: int, m: int = N_PROJ) -> tuple[np.ndarray, float]:
+    """:func:`gaussian_matrix`'s draws quantised by :func:`quantise_int8`, generated twice from the
+    same seeded stream (once for max|P|, once to round) so no float32 copy of P ever exists."""
+    peak = 0.0
+    rng = np.random.default_rng(seed)
+    buf = np.empty((min(n, _CHUNK_ROWS), m), dtype=np.float32)
+    for start, stop in _chunks(n):
+        chunk = buf[: stop - start]
+        rng.standard_normal((stop - start, m), dtype=np.float32, out=chunk)
+        peak = max(peak, float(np.abs(chunk).max()))
+    scale = peak / MATRIX_LEVELS
+    rng = np.random.default_rng(seed)
+    out = np.empty((n, m), dtype=np.int8)
+    for start, stop in _chunks(n):
+        chunk = buf[: stop - start]
+        rng.standard_normal((stop - start, m), dtype=np.float32, out=chunk)
+        out[start:stop] = np.rint(chunk.astype(np.float64) / scale)
+    return out, scale
+
+
+def quantise_features(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(x int32 (b, n), s_f (b,) float64): x = rint(f / s_f), s_f = max|f| / 32767 per row (a zero
+    row gives x = 0, s_f = 0). Row by row, so a frame's x does not depend on its batch."""
+    f = np.asarray(rows, dtype=np.float64)
+    peak = np.max(np.abs(f), axis=1)
+    scale = peak / FEATURE_LEVELS
+    safe = np.where(scale > 0, scale, 1.0)
+    return np.rint(f / safe[:, None]).astype(np.int32), scale
 
 
 def half_bits_to_float32(bits: np.ndarray) -> np.ndarray:
@@ -237,6 +304,59 @@ def _project_rows(F, W, out):  # pragma: no cover - compiled
             out[r, j] = total
 
 
+@njit(parallel=True, cache=True)
+def _project_rows_int8(X, Q, out):  # pragma: no cover - compiled
+    """out[r] = X[r] @ Q exactly (int64), for X int32 with |x| <= 32767 and Q int8 with |q| <= 127.
+
+    Each of PROJECTION_CHUNKS row ranges (one per thread at most) accumulates two rows of Q at a
+    time in int32 over blocks of _INT_BLOCK rows (no overflow: see _INT_BLOCK), then adds the block
+    to an int64 total. Integer sums are exact, so the result is the same for any order, batch
+    size and thread count.
+    """
+    n, m = Q.shape
+    b = X.shape[0]
+    nchunk = PROJECTION_CHUNKS
+    step = (n + nchunk - 1) // nchunk
+    part = np.zeros((nchunk, b, m), np.int64)
+    for c in prange(nchunk):
+        lo = c * step
+        hi = min(n, (c + 1) * step)
+        acc = np.zeros((b, m), np.int32)
+        i = lo
+        while i < hi:
+            top = min(hi, i + _INT_BLOCK)
+            while i + 2 <= top:
+                q0 = Q[i]
+                q1 = Q[i + 1]
+                for r in range(b):  # each pair of rows of Q is read once for the whole batch
+                    a = acc[r]
+                    x0 = X[r, i]
+                    x1 = X[r, i + 1]
+                    for j in range(m):
+                        a[j] += x0 * np.int32(q0[j]) + x1 * np.int32(q1[j])
+                i += 2
+            if i < top:
+                q0 = Q[i]
+                for r in range(b):
+                    a = acc[r]
+                    x0 = X[r, i]
+                    for j in range(m):
+                        a[j] += x0 * np.int32(q0[j])
+                i += 1
+            for r in range(b):
+                total = part[c, r]
+                a = acc[r]
+                for j in range(m):
+                    total[j] += a[j]
+                    a[j] = 0
+    for r in range(b):
+        for j in range(m):
+            s = part[0, r, j]
+            for c in range(1, nchunk):
+                s += part[c, r, j]
+            out[r, j] = s
+
+
 @njit(cache=True)
 def _slsbh_rows(D, k, out):  # pragma: no cover - compiled
     """sLSBH of every row of D into out (b, 2k), the same rule as :func:`slsbh`."""
@@ -341,7 +461,14 @@ class BinaryProjector:
         self.n_seen = 0
         input_dim, matrix_path = cfg.input_dim, cfg.matrix_path
         self.matrix_dtype = cfg.matrix_dtype
-        if projection == "gaussian":
+        #: s_P of ``matrix_dtype: int8`` (P ~ s_P q); 1.0 for the float storages
+        self.matrix_scale = 1.0
+        if projection == "gaussian" and cfg.matrix_dtype == "int8":
+            if matrix_path:
+                self.matrix, self.matrix_scale = quantise_int8(load_bin(matrix_path, input_dim))
+            else:
+                self.matrix, self.matrix_scale = gaussian_matrix_int8(input_dim, seed)
+        elif projection == "gaussian":
             half = cfg.matrix_dtype == "float16"
             if matrix_path:
                 self.matrix = to_half_bits(load_bin(matrix_path, input_dim)) if half else load_bin(matrix_path, input_dim)
@@ -358,9 +485,14 @@ class BinaryProjector:
 
     def matrix_float32(self) -> np.ndarray:
         """P as float32 (n, m), e.g. for :func:`save_bin`; with ``matrix_dtype: float16`` the values
-        it uses, i.e. the binary16-rounded ones (a new array: 265 MB at full size)."""
+        it uses, i.e. the binary16-rounded ones; with ``int8`` s_P q (a new array: 265 MB at full size)."""
         if self.projection != "gaussian":
             raise ValueError("only the gaussian projection has a dense matrix")
+        if self.matrix_dtype == "int8":
+            out = np.empty(self.matrix.shape, dtype=np.float32)
+            for start, stop in _chunks(self.matrix.shape[0]):
+                out[start:stop] = self.matrix[start:stop].astype(np.float64) * self.matrix_scale
+            return out
         return half_bits_to_float32(self.matrix) if self.matrix_dtype == "float16" else np.asarray(self.matrix)
 
     def _check(self, feats: np.ndarray) -> np.ndarray:
@@ -390,14 +522,24 @@ class BinaryProjector:
     def project(self, feats: np.ndarray) -> np.ndarray:
         """d = P f: (n,) or (b, n) features -> (1024,) or (b, 1024) float32 (no centring)."""
         f = self._check(feats)
-        rows = np.ascontiguousarray(np.atleast_2d(f))
-        if self.projection == "sparse":
-            out = np.asarray((self._sparse_rows @ rows.T).T, dtype=np.float32)
-        else:
-            out = np.empty((rows.shape[0], self.matrix.shape[1]), dtype=np.float32)
-            numba.set_num_threads(min(self.threads, numba.config.NUMBA_NUM_THREADS))
-            _project_rows(rows, self.matrix, out)  # float32 or binary16 storage (_widen)
+        out = self._project(np.atleast_2d(f)).astype(np.float32, copy=False)
         return out[0] if f.ndim == 1 else out
+
+    def _project(self, rows: np.ndarray) -> np.ndarray:
+        """(b, n) -> (b, 1024): float32, or float64 for int8 storage (s_f s_P times an exact integer
+        sum < 2^53, so no two different sums round to the same value before sLSBH ranks them)."""
+        rows = np.ascontiguousarray(rows, dtype=np.float32)
+        if self.projection == "sparse":
+            return np.asarray((self._sparse_rows @ rows.T).T, dtype=np.float32)
+        numba.set_num_threads(min(self.threads, numba.config.NUMBA_NUM_THREADS))
+        if self.matrix_dtype == "int8":
+            x, scale = quantise_features(rows)
+            sums = np.empty((rows.shape[0], self.matrix.shape[1]), dtype=np.int64)
+            _project_rows_int8(x, self.matrix, sums)
+            return sums * (scale * self.matrix_scale)[:, None]
+        out = np.empty((rows.shape[0], self.matrix.shape[1]), dtype=np.float32)
+        _project_rows(rows, self.matrix, out)  # float32 or binary16 storage (_widen)
+        return out
 
     def bits(self, feats: np.ndarray) -> np.ndarray:
         """One feature vector -> its sLSBH bits (centring first when enabled)."""
@@ -405,7 +547,7 @@ class BinaryProjector:
 
     def bits_batch(self, feats: np.ndarray) -> list[np.ndarray]:
         """(b, n) features -> b arrays of sorted uint16 bit indices; one pass over P."""
-        d = np.ascontiguousarray(self.project(self.centre(np.atleast_2d(feats))))
+        d = np.ascontiguousarray(self._project(self.centre(np.atleast_2d(feats))))
         k = int(round(d.shape[1] * self.sparsity))
         out = np.empty((d.shape[0], 2 * k), dtype=np.int64)
         _slsbh_rows(d, k, out)
@@ -413,9 +555,9 @@ class BinaryProjector:
 
     def warm_up(self) -> None:
         """Compile the numba kernels now (not on the first frame), without touching the running mean."""
-        self.project(np.zeros(self.input_dim, np.float32))
+        d = self._project(np.zeros((1, self.input_dim), np.float32))
         k = int(round(N_PROJ * self.sparsity))
-        _slsbh_rows(np.zeros((1, N_PROJ), np.float32), k, np.empty((1, 2 * k), np.int64))
+        _slsbh_rows(d, k, np.empty((1, 2 * k), np.int64))
 
     def state_dict(self) -> dict[str, Any]:
         """The running mean (the matrix is not state: it is regenerated from the seed or file)."""

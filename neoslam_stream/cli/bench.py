@@ -27,10 +27,14 @@ def cmd_bench_throughput(args: argparse.Namespace) -> int:
     overrides: dict[str, Any] = {}
     if args.projection:
         overrides["projector"] = {"projection": args.projection}
+    if args.matrix_dtype:
+        overrides.setdefault("projector", {})["matrix_dtype"] = args.matrix_dtype
     if args.image_capacity:
         overrides["bus"] = {"capacity": {"image": args.image_capacity}}
     if args.threads:
         overrides["run"] = {"threads": json.loads(args.threads)}
+    if args.max_batch:
+        overrides.setdefault("run", {})["max_batch"] = args.max_batch
     try:
         res = run_bench(args.config, args.rates, args.duration, topologies, Path(args.out),
                         args.backbone, args.scaling, overrides, args.scaling_step)
@@ -70,6 +74,9 @@ def register(sub: argparse._SubParsersAction, bench_sub: argparse._SubParsersAct
                    help="feature backbone (default random_alexnet: AlexNet's cost without its weights; "
                         "alexnet with weights costs the same)")
     p.add_argument("--projection", choices=["gaussian", "sparse"], help="override stage B's projection")
+    p.add_argument("--matrix-dtype", choices=["float32", "float16", "int8"],
+                   help="override the storage of B's Gaussian matrix (projector.matrix_dtype)")
+    p.add_argument("--max-batch", type=int, help="override run.max_batch (1: every stage takes one frame at a time)")
     p.add_argument("--image-capacity", type=int, help="override the image ring capacity (bus.capacity.image)")
     p.add_argument("--threads", help='per-stage thread budget as JSON, e.g. \'{"A": 2}\'')
     p.add_argument("--scaling", type=int, metavar="FRAMES", help="also run the lossless scaling curve")

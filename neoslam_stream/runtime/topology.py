@@ -188,7 +188,7 @@ class Supervisor:
             default_capacity=self.cfg.bus.default_capacity,
             threads=max(s.threads for s in specs) if wname != "monolithic" else max(
                 1, max(s.threads for s in specs)),
-            max_batch=self.cfg.run.max_batch if self.lossless else 1, log_level=self.cfg.run.log_level,
+            max_batch=self.cfg.run.max_batch, log_level=self.cfg.run.log_level,
             resume_states=resume_states, expected_peers=self.order.index(wname), map_path=self.map_path,
             checkpoint_every=self.cfg.run.checkpoint_every,
             checkpoint_dir=str(self.run_dir / "checkpoint") if self.cfg.run.checkpoint_every else "",

@@ -331,6 +331,19 @@ def test_torch_projection_on_cpu_gives_the_numba_bits_up_to_marginal_ties():
     np.testing.assert_array_equal(np.stack(tp.bits_batch(F[3:5])), np.stack(tp.bits_batch(F)[3:5]))
 
 
+def test_torch_projection_with_int8_storage_uses_the_rounded_matrix():
+    # the device path multiplies the (unrounded) features by the values s_P q; against the CPU's
+    # exact integer path, only near-ties may differ (the features' 16-bit rounding moves d_j by
+    # ~1e-5 of max|d|, within _marginal_only's tolerance)
+    bp = P.BinaryProjector(input_dim=3000, seed=4, matrix_dtype="int8")
+    tp = P.TorchProjection(bp, "cpu")
+    np.testing.assert_array_equal(tp.matrix.numpy(), bp.matrix_float32())
+    F = np.random.default_rng(9).standard_normal((8, 3000)).astype(np.float32)
+    d = F.astype(np.float64) @ bp.matrix_float32().astype(np.float64)
+    flipped = sum(_marginal_only(a, b, row) for row, a, b in zip(d, bp.bits_batch(F), tp.bits_batch(F), strict=True))
+    assert flipped <= 8 * 4
+
+
 def test_torch_projection_uses_the_float16_rounded_matrix_and_centres_like_numba():
     bp = P.BinaryProjector(input_dim=500, seed=2, matrix_dtype="float16", centre_window=3)
     ref = P.BinaryProjector(input_dim=500, seed=2, matrix_dtype="float16", centre_window=3)

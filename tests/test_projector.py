@@ -195,15 +195,16 @@ def test_float16_storage_equals_float32_on_the_rounded_matrix():
     np.testing.assert_allclose(f16.project(F), expected, rtol=1e-4, atol=1e-3)
 
 
-def test_float16_storage_does_not_depend_on_batching_or_threads():
-    bp = P.BinaryProjector(input_dim=3000, seed=4, matrix_dtype="float16")
-    F = np.random.default_rng(5).standard_normal((8, 3000)).astype(np.float32)
-    whole = bp.project(F)
+@pytest.mark.parametrize("dtype", ["float32", "float16", "int8"])
+def test_projection_does_not_depend_on_batching_or_threads(dtype):
+    bp = P.BinaryProjector(input_dim=3001, seed=4, matrix_dtype=dtype)
+    F = np.random.default_rng(5).standard_normal((8, 3001)).astype(np.float32)
+    whole = bp._project(F)
     for size in (1, 3, 5):
-        parts = np.concatenate([bp.project(F[i:i + size]) for i in range(0, 8, size)])
+        parts = np.concatenate([bp._project(F[i:i + size]) for i in range(0, 8, size)])
         np.testing.assert_array_equal(parts, whole)
-    two = P.BinaryProjector(input_dim=3000, seed=4, matrix_dtype="float16", threads=2)
-    np.testing.assert_array_equal(two.project(F), whole)
+    two = P.BinaryProjector(input_dim=3001, seed=4, matrix_dtype=dtype, threads=2)
+    np.testing.assert_array_equal(two._project(F), whole)
 
 
 def test_bin_round_trip_with_float16_storage(tmp_path):
@@ -269,17 +270,6 @@ def test_int8_kernel_accumulates_extreme_values_without_overflow():
     P._project_rows_int8(X, Q, out)
     assert out[0, 0] == n * 32767 * 127 and out[0, 1] == -n * 32767 * 127
     assert out[1, 0] == -n * 32767 * 127
-
-
-def test_int8_storage_does_not_depend_on_batching_or_threads():
-    bp = P.BinaryProjector(input_dim=3001, seed=4, matrix_dtype="int8")
-    F = np.random.default_rng(5).standard_normal((8, 3001)).astype(np.float32)
-    whole = bp._project(F)
-    for size in (1, 3, 5):
-        parts = np.concatenate([bp._project(F[i:i + size]) for i in range(0, 8, size)])
-        np.testing.assert_array_equal(parts, whole)
-    two = P.BinaryProjector(input_dim=3001, seed=4, matrix_dtype="int8", threads=2)
-    np.testing.assert_array_equal(two._project(F), whole)
 
 
 def test_bin_import_with_int8_storage(tmp_path):

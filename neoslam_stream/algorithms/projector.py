@@ -250,6 +250,17 @@ def _widen_compiled(w):  # pragma: no cover - compiled
     return None
 
 
+@njit(cache=True)
+def _sum_chunks(part, out):  # pragma: no cover - compiled
+    """out[r, j] = the sum over chunks c of part[c, r, j], in chunk order (a fixed order)."""
+    for r in range(part.shape[1]):
+        for j in range(part.shape[2]):
+            total = part[0, r, j]
+            for c in range(1, part.shape[0]):
+                total += part[c, r, j]
+            out[r, j] = total
+
+
 @njit(parallel=True, cache=True)
 def _project_rows(F, W, out):  # pragma: no cover - compiled
     """out[r] = F[r] @ W with a summation order that depends on nothing but n.
@@ -296,12 +307,7 @@ def _project_rows(F, W, out):  # pragma: no cover - compiled
                 for j in range(m):
                     acc[j] += a0 * _widen(w0[j])
             i += 1
-    for r in range(b):
-        for j in range(m):
-            total = part[0, r, j]
-            for c in range(1, nchunk):
-                total += part[c, r, j]
-            out[r, j] = total
+    _sum_chunks(part, out)
 
 
 @njit(parallel=True, cache=True)
@@ -349,12 +355,7 @@ def _project_rows_int8(X, Q, out):  # pragma: no cover - compiled
                 for j in range(m):
                     total[j] += a[j]
                     a[j] = 0
-    for r in range(b):
-        for j in range(m):
-            s = part[0, r, j]
-            for c in range(1, nchunk):
-                s += part[c, r, j]
-            out[r, j] = s
+    _sum_chunks(part, out)
 
 
 @njit(cache=True)

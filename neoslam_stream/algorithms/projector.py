@@ -85,23 +85,38 @@ class ProjectorConfig(BaseModel):
     device: str = Field("cpu", pattern=r"^(cpu|auto|cuda(:[0-9]+)?)$")
 
 
+def _chunks(n: int):
+    """(start, stop) of P's row chunks of at most _CHUNK_ROWS rows."""
+    for start in range(0, n, _CHUNK_ROWS):
+        yield start, min(n, start + _CHUNK_ROWS)
+
+
+def _gaussian_chunks(n: int, seed: int, m: int, into: np.ndarray | None = None):
+    """P's seeded N(0, 1) float32 draws, row chunk by row chunk: (start, stop, chunk). The chunks
+    are written into ``into`` (n, m) float32 when given, else into one reused buffer (no full-size
+    float32 array exists then)."""
+    rng = np.random.default_rng(seed)
+    buf = np.empty((min(n, _CHUNK_ROWS), m), dtype=np.float32) if into is None else None
+    for start, stop in _chunks(n):
+        chunk = into[start:stop] if buf is None else buf[: stop - start]
+        rng.standard_normal((stop - start, m), dtype=np.float32, out=chunk)
+        yield start, stop, chunk
+
+
 def gaussian_matrix(n: int, seed: int, m: int = N_PROJ, half: bool = False) -> np.ndarray:
     """(n, m) float32 N(0,1), filled row chunk by row chunk from one seeded stream.
 
     ``half``: the same draws rounded to binary16, returned as their uint16 bit patterns (see
     :func:`to_half_bits`), built chunk by chunk so no float32 copy of P ever exists.
     """
-    rng = np.random.default_rng(seed)
-    out = np.empty((n, m), dtype=np.uint16 if half else np.float32)
-    buf = np.empty((min(n, _CHUNK_ROWS), m), dtype=np.float32) if half else None
-    for start in range(0, n, _CHUNK_ROWS):
-        stop = min(n, start + _CHUNK_ROWS)
-        if buf is None:
-            rng.standard_normal((stop - start, m), dtype=np.float32, out=out[start:stop])
-        else:
-            chunk = buf[: stop - start]
-            rng.standard_normal((stop - start, m), dtype=np.float32, out=chunk)
-            out[start:stop] = chunk.astype(np.float16).view(np.uint16)
+    if not half:
+        out = np.empty((n, m), dtype=np.float32)
+        for _ in _gaussian_chunks(n, seed, m, into=out):
+            pass
+        return out
+    out = np.empty((n, m), dtype=np.uint16)
+    for start, stop, chunk in _gaussian_chunks(n, seed, m):
+        out[start:stop] = chunk.astype(np.float16).view(np.uint16)
     return out
 
 
@@ -114,42 +129,29 @@ MATRIX_LEVELS = 127
 _INT_BLOCK = 256
 
 
-def _chunks(n: int):
-    for start in range(0, n, _CHUNK_ROWS):
-        yield start, min(n, start + _CHUNK_ROWS)
+def _quantise_chunks(chunks: Any, shape: tuple[int, int]) -> tuple[np.ndarray, float]:
+    """(q int8, s_P) with q = rint(P / s_P), s_P = max|P| / 127, from P's row chunks; ``chunks()``
+    gives them (start, stop, rows) anew, and is called twice: once for max|P|, once to round."""
+    peak = 0.0
+    for _, _, rows in chunks():
+        peak = max(peak, float(np.max(np.abs(rows), initial=0.0)))
+    scale = peak / MATRIX_LEVELS if peak > 0 else 1.0
+    out = np.empty(shape, dtype=np.int8)
+    for start, stop, rows in chunks():
+        out[start:stop] = np.rint(np.asarray(rows, dtype=np.float64) / scale)
+    return out, scale
 
 
 def quantise_int8(matrix: np.ndarray) -> tuple[np.ndarray, float]:
-    """(q int8, s_P) with q = rint(P / s_P), s_P = max|P| / 127, row chunk by row chunk (no full-size
-    temporary; ``matrix`` may be a memory map of a ``.bin`` file)."""
-    peak = 0.0
-    for start, stop in _chunks(matrix.shape[0]):
-        peak = max(peak, float(np.max(np.abs(matrix[start:stop]), initial=0.0)))
-    scale = peak / MATRIX_LEVELS if peak > 0 else 1.0
-    out = np.empty(matrix.shape, dtype=np.int8)
-    for start, stop in _chunks(matrix.shape[0]):
-        out[start:stop] = np.rint(np.asarray(matrix[start:stop], dtype=np.float64) / scale)
-    return out, scale
+    """(q int8, s_P) of a float32 P (no full-size temporary; ``matrix`` may be a memory map of a
+    ``.bin`` file)."""
+    return _quantise_chunks(lambda: ((a, b, matrix[a:b]) for a, b in _chunks(matrix.shape[0])), matrix.shape)
 
 
 def gaussian_matrix_int8(n: int, seed: int, m: int = N_PROJ) -> tuple[np.ndarray, float]:
-    """:func:`gaussian_matrix`'s draws quantised by :func:`quantise_int8`, generated twice from the
-    same seeded stream (once for max|P|, once to round) so no float32 copy of P ever exists."""
-    peak = 0.0
-    rng = np.random.default_rng(seed)
-    buf = np.empty((min(n, _CHUNK_ROWS), m), dtype=np.float32)
-    for start, stop in _chunks(n):
-        chunk = buf[: stop - start]
-        rng.standard_normal((stop - start, m), dtype=np.float32, out=chunk)
-        peak = max(peak, float(np.abs(chunk).max()))
-    scale = peak / MATRIX_LEVELS
-    rng = np.random.default_rng(seed)
-    out = np.empty((n, m), dtype=np.int8)
-    for start, stop in _chunks(n):
-        chunk = buf[: stop - start]
-        rng.standard_normal((stop - start, m), dtype=np.float32, out=chunk)
-        out[start:stop] = np.rint(chunk.astype(np.float64) / scale)
-    return out, scale
+    """:func:`gaussian_matrix`'s draws quantised like :func:`quantise_int8`, generated twice from
+    the same seeded stream so no float32 copy of P ever exists."""
+    return _quantise_chunks(lambda: _gaussian_chunks(n, seed, m), (n, m))
 
 
 def quantise_features(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -172,8 +174,7 @@ def to_half_bits(matrix: np.ndarray) -> np.ndarray:
     chunk by row chunk (no full-size temporary). numba has no float16 type on the CPU, so the
     kernel reads these bits and widens them itself (:func:`_half_rows_to_float`)."""
     out = np.empty(matrix.shape, dtype=np.uint16)
-    for start in range(0, matrix.shape[0], _CHUNK_ROWS):
-        stop = min(matrix.shape[0], start + _CHUNK_ROWS)
+    for start, stop in _chunks(matrix.shape[0]):
         out[start:stop] = np.asarray(matrix[start:stop], dtype=np.float32).astype(np.float16).view(np.uint16)
     return out
 

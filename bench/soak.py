@@ -18,6 +18,8 @@ import json
 import sys
 from pathlib import Path
 
+import yaml
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from neoslam_stream.throughput import rate_sweep, summarise  # noqa: E402
@@ -47,6 +49,9 @@ def minutes(stats_path: Path, every_s: float) -> list[dict]:
                      "tm_segments": (st.get("C", {}).get("info") or {}).get("segments"),
                      "tm_synapses": (st.get("C", {}).get("info") or {}).get("synapses"),
                      "svc_intervals": (st.get("D", {}).get("info") or {}).get("intervals"),
+                     # D's query over its recent frames: how the spatial-view search scales
+                     "d_query_recent_p50_ms": st.get("D", {}).get("tau_recent_p50_ms"),
+                     "d_query_recent_p95_ms": st.get("D", {}).get("tau_recent_p95_ms"),
                      "experiences": (st.get("experience_map", {}).get("info") or {}).get("experiences")})
     return rows
 
@@ -105,6 +110,8 @@ def main() -> None:
         run_dir = Path(args.from_run)
         report = json.loads((run_dir / "report.json").read_text())
         row = summarise(report, "pipeline", args.rate, args.duration)
+        cfg = yaml.safe_load((run_dir / "config.yaml").read_text())
+        row.update({"matrix_dtype": cfg["projector"]["matrix_dtype"], "max_batch": cfg["run"]["max_batch"]})
     else:
         overrides = {"projector": {"matrix_dtype": args.matrix_dtype}} if args.matrix_dtype else None
         (row,) = rate_sweep(args.config, [args.rate], args.duration, ["pipeline"], work, args.backbone, overrides)
@@ -112,7 +119,7 @@ def main() -> None:
     res = {"rate": args.rate, "duration_s": args.duration, "frames_in": row["frames_in"],
            "frames_out": row["frames_processed"], "loss": row["loss"], "errors": row["errors"],
            "restarts": row["restarts"], "backbone": row["backbone"],
-           "matrix_dtype": row.get("matrix_dtype"), "max_batch": row.get("max_batch"),
+           "matrix_dtype": row["matrix_dtype"], "max_batch": row["max_batch"],
            "rss_total_mb_first": rows[0]["rss_total_mb"] if rows else None,
            "rss_total_mb_last": rows[-1]["rss_total_mb"] if rows else None,
            "rss_growth_mb_per_hour_second_half": growth_per_hour(rows),

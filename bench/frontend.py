@@ -54,19 +54,22 @@ def bench_b(reps: int, batch: int, threads: int) -> dict:
 
 
 def bench_b_storage(rounds: int, n: int = 64896) -> dict:
-    """B's Gaussian projection on ONE thread, float32, float16 and int8 storage of P, interleaved
-    in one process (each storage in turn, the order rotating, ``rounds`` times; medians), so all
-    see the same machine load; each with 1, 2 and 4 frames per call (micro-batches: the node gets
-    every frame waiting in its queue, up to ``run.max_batch``), per frame."""
+    """B's Gaussian projection on ONE thread, float32, float16 and int8 storage of P (int8 with
+    16-bit and with 7-bit features: real_sdrs.VARIANTS), interleaved in one process (each variant
+    in turn, the order rotating, ``rounds`` times; medians), so all see the same machine load; each
+    with 1, 2 and 4 frames per call (micro-batches: the node gets every frame waiting in its queue,
+    up to ``run.max_batch``), per frame."""
+    from real_sdrs import VARIANTS
+
     rng = np.random.default_rng(0)
     fs = rng.standard_normal((4, n)).astype(np.float32)
-    dtypes = ("float32", "float16", "int8")
-    projs = {d: BinaryProjector(projection="gaussian", threads=1, input_dim=n, matrix_dtype=d) for d in dtypes}
+    dtypes = tuple(VARIANTS)
+    projs = {d: BinaryProjector(projection="gaussian", threads=1, input_dim=n, **VARIANTS[d]) for d in dtypes}
     times: dict[tuple[str, int], list[float]] = {(d, b): [] for d in dtypes for b in (1, 2, 4)}
     for p in projs.values():
         p.warm_up()
     for r in range(rounds):
-        order = dtypes[r % 3:] + dtypes[: r % 3]  # every storage goes first, second and last in turn
+        order = dtypes[r % len(dtypes):] + dtypes[: r % len(dtypes)]  # each variant goes first, ..., last in turn
         for d in order:
             for b in (1, 2, 4):
                 t0 = time.perf_counter()
@@ -76,8 +79,9 @@ def bench_b_storage(rounds: int, n: int = 64896) -> dict:
     out = {f"b_ms_gaussian_batch1_{d}_1thread": med[d, 1] for d in dtypes}
     out.update({f"b_ms_gaussian_{d}_batch{b}_1thread": med[d, b] for d in dtypes for b in (2, 4)})
     out.update({"b_float16_over_float32": med["float16", 1] / med["float32", 1],
-                "b_int8_over_float32": med["int8", 1] / med["float32", 1], "b_storage_rounds": rounds,
-                "b_storage_conditions": f"one thread, n = {n}, float32/float16/int8 interleaved in one "
+                "b_int8_over_float32": med["int8", 1] / med["float32", 1],
+                "b_int8_7bit_over_float32": med["int8_7bit", 1] / med["float32", 1], "b_storage_rounds": rounds,
+                "b_storage_conditions": f"one thread, n = {n}, {'/'.join(dtypes)} interleaved in one "
                                         f"process, {rounds} rounds, medians"})
     return out
 
@@ -205,7 +209,7 @@ def main() -> None:
             res[f"d_real_k{k}"] = real
             res[f"d_ms_real_k{k}"] = real["compute_ms_bounded"]
             print("D real", real, flush=True)
-        for dtype in ("float16", "int8") if args.part != "d" else ():
+        for dtype in ("float16", "int8", "int8_7bit") if args.part != "d" else ():
             res[f"b_{dtype}_agreement"] = {"synthetic": real_sdrs.storage_synthetic(rec, dtype),
                                            "nordland": real_sdrs.storage_nordland(8 if args.quick else 4, dtype)}
             print(f"{dtype} agreement", res[f"b_{dtype}_agreement"], flush=True)

@@ -21,6 +21,14 @@ import numpy as np
 
 CACHE = Path("/tmp/neoslam_bench_real_synthetic.npz")
 
+#: B's precision variants compared with the float32 reference: name -> projector settings
+VARIANTS: dict[str, dict[str, Any]] = {
+    "float32": {"matrix_dtype": "float32"},
+    "float16": {"matrix_dtype": "float16"},
+    "int8": {"matrix_dtype": "int8"},
+    "int8_7bit": {"matrix_dtype": "int8", "feature_bits": 7},
+}
+
 
 def record_synthetic(frames: int | None = None, cache: Path | None = CACHE) -> dict[str, Any]:
     """{features (T, n) float32, bits list, cells list, ids, loops, best_score, backbone}."""
@@ -71,15 +79,16 @@ def _bit_agreement(a: list[np.ndarray], b: list[np.ndarray]) -> dict[str, float]
 
 
 def storage_synthetic(rec: dict[str, Any], dtype: str = "float16") -> dict[str, Any]:
-    """Replay the recorded A features through B (float32 and ``dtype`` storage: float16 or int8),
-    C and D as configured by ``default``; compare bits and templates with the recorded run."""
+    """Replay the recorded A features through B (float32 and the variant ``dtype`` of
+    :data:`VARIANTS`), C and D as configured by ``default``; compare bits and templates with the
+    recorded run."""
     from neoslam_stream import NeoSLAM, load_config
     from neoslam_stream.runtime.messages import Message
 
     out: dict[str, Any] = {}
     runs = {}
     for storage in ("float32", dtype):
-        cfg = load_config("default", overrides={"projector": {"matrix_dtype": storage}})
+        cfg = load_config("default", overrides={"projector": VARIANTS[storage]})
         slam = NeoSLAM(cfg, backend=False)
         bits, ids, loops = [], [], []
         for i, f in enumerate(rec["features"]):
@@ -107,7 +116,8 @@ def storage_synthetic(rec: dict[str, Any], dtype: str = "float16") -> dict[str, 
 
 def storage_nordland(step: int = 4, dtype: str = "float16") -> dict[str, Any]:
     """The main Nordland configuration of bench/frontend.py (EfficientNet-Lite0, centred B with
-    window 100, pass-through C, calibrated theta_sigma) with B's matrix in float32 and in ``dtype``."""
+    window 100, pass-through C, calibrated theta_sigma) with B in float32 and in the variant ``dtype``
+    of :data:`VARIANTS`."""
     from neoslam_stream.algorithms.features import VisualFeatureExtractor
     from neoslam_stream.algorithms.projector import BinaryProjector
     from neoslam_stream.algorithms.spatial_view import SpatialViewCells
@@ -129,7 +139,7 @@ def storage_nordland(step: int = 4, dtype: str = "float16") -> dict[str, Any]:
     res: dict[str, Any] = {"places": n, "frames": len(frames), "step": step, "backbone": fa.backbone}
     bits = {}
     for storage in ("float32", dtype):
-        pb = BinaryProjector(input_dim=fa.output_dim, matrix_dtype=storage, centre_window=100)
+        pb = BinaryProjector(input_dim=fa.output_dim, centre_window=100, **VARIANTS[storage])
         bits[storage] = [b for k in range(0, len(feats), 8) for b in pb.bits_batch(feats[k:k + 8])]
     res["bits"] = _bit_agreement(bits["float32"], bits[dtype])
     tids = {}
@@ -151,7 +161,7 @@ if __name__ == "__main__":
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     r = record_synthetic()
     print(json.dumps({dtype: {"synthetic": storage_synthetic(r, dtype), "nordland": storage_nordland(4, dtype)}
-                      for dtype in ("float16", "int8")}, indent=2))
+                      for dtype in ("float16", "int8", "int8_7bit")}, indent=2))
 
 
 def grow_index(cells: list[np.ndarray], k_target: int, swap: float = 0.05, seed: int = 0) -> tuple[Any, list]:

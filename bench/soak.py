@@ -100,6 +100,8 @@ def main() -> None:
     ap.add_argument("--backbone", default="random_alexnet")
     ap.add_argument("--matrix-dtype", choices=["float32", "float16", "int8"],
                     help="storage of B's Gaussian matrix (projector.matrix_dtype; default: the config's)")
+    ap.add_argument("--feature-bits", type=int, choices=[16, 7],
+                    help="with int8 storage: 16- or 7-bit features (projector.feature_bits; default: the config's)")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "soak.json"))
     ap.add_argument("--from-run", help="analyse this finished soak run folder instead of running one")
     args = ap.parse_args()
@@ -111,15 +113,17 @@ def main() -> None:
         report = json.loads((run_dir / "report.json").read_text())
         row = summarise(report, "pipeline", args.rate, args.duration)
         cfg = yaml.safe_load((run_dir / "config.yaml").read_text())
-        row.update({"matrix_dtype": cfg["projector"]["matrix_dtype"], "max_batch": cfg["run"]["max_batch"]})
+        row.update({"matrix_dtype": cfg["projector"]["matrix_dtype"], "max_batch": cfg["run"]["max_batch"],
+                    "feature_bits": cfg["projector"].get("feature_bits", 16)})
     else:
-        overrides = {"projector": {"matrix_dtype": args.matrix_dtype}} if args.matrix_dtype else None
+        chosen = {"matrix_dtype": args.matrix_dtype, "feature_bits": args.feature_bits}
+        overrides = {"projector": {k: v for k, v in chosen.items() if v}} if any(chosen.values()) else None
         (row,) = rate_sweep(args.config, [args.rate], args.duration, ["pipeline"], work, args.backbone, overrides)
     rows = minutes(run_dir / "stats.jsonl", args.every)
     res = {"rate": args.rate, "duration_s": args.duration, "frames_in": row["frames_in"],
            "frames_out": row["frames_processed"], "loss": row["loss"], "errors": row["errors"],
            "restarts": row["restarts"], "backbone": row["backbone"],
-           "matrix_dtype": row["matrix_dtype"], "max_batch": row["max_batch"],
+           "matrix_dtype": row["matrix_dtype"], "feature_bits": row["feature_bits"], "max_batch": row["max_batch"],
            "rss_total_mb_first": rows[0]["rss_total_mb"] if rows else None,
            "rss_total_mb_last": rows[-1]["rss_total_mb"] if rows else None,
            "rss_growth_mb_per_hour_second_half": growth_per_hour(rows),

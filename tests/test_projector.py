@@ -195,15 +195,15 @@ def test_float16_storage_equals_float32_on_the_rounded_matrix():
     np.testing.assert_allclose(f16.project(F), expected, rtol=1e-4, atol=1e-3)
 
 
-@pytest.mark.parametrize("dtype", ["float32", "float16", "int8"])
-def test_projection_does_not_depend_on_batching_or_threads(dtype):
-    bp = P.BinaryProjector(input_dim=3001, seed=4, matrix_dtype=dtype)
+@pytest.mark.parametrize("dtype,feature_bits", [("float32", 16), ("float16", 16), ("int8", 16), ("int8", 7)])
+def test_projection_does_not_depend_on_batching_or_threads(dtype, feature_bits):
+    bp = P.BinaryProjector(input_dim=3001, seed=4, matrix_dtype=dtype, feature_bits=feature_bits)
     F = np.random.default_rng(5).standard_normal((8, 3001)).astype(np.float32)
     whole = bp._project(F)
     for size in (1, 3, 5):
         parts = np.concatenate([bp._project(F[i:i + size]) for i in range(0, 8, size)])
         np.testing.assert_array_equal(parts, whole)
-    two = P.BinaryProjector(input_dim=3001, seed=4, matrix_dtype=dtype, threads=2)
+    two = P.BinaryProjector(input_dim=3001, seed=4, matrix_dtype=dtype, feature_bits=feature_bits, threads=2)
     np.testing.assert_array_equal(two._project(F), whole)
 
 
@@ -270,6 +270,41 @@ def test_int8_kernel_accumulates_extreme_values_without_overflow():
     P._project_rows_int8(X, Q, out)
     assert out[0, 0] == n * 32767 * 127 and out[0, 1] == -n * 32767 * 127
     assert out[1, 0] == -n * 32767 * 127
+
+
+def test_seven_bit_features_on_their_grid_give_the_exact_integer_product():
+    # features that already lie on a 7-bit grid: f = s (k - z) with k in 0..127, both ends present,
+    # so the per-frame quantiser must recover s = (max - min) / 127 and zero point z exactly, and
+    # d = s s_P ((k - z) q) is known in integers (n = 1000: |sums| < 2^24, float32 holds them)
+    n = 1000
+    fast = P.BinaryProjector(input_dim=n, seed=3, matrix_dtype="int8", feature_bits=7)
+    exact = P.BinaryProjector(input_dim=n, seed=3, matrix_dtype="int8")
+    np.testing.assert_array_equal(fast.matrix, exact.matrix)
+    rng = np.random.default_rng(2)
+    for s, z in ((0.5, 40), (0.25, 0), (2.0, 127)):
+        k = rng.integers(0, 128, n)
+        k[:2] = (0, 127)
+        f = (s * (k - z)).astype(np.float32)
+        sums = (k - z).astype(np.int64) @ fast.matrix.astype(np.int64)
+        expected = sums * (s * fast.matrix_scale)
+        np.testing.assert_allclose(fast.project(f), expected, rtol=1e-6, atol=1e-6 * np.abs(expected).max())
+
+
+def test_seven_bit_features_stay_close_to_the_float_projection_and_need_the_int8_matrix():
+    n = 64896 // 16
+    fast = P.BinaryProjector(input_dim=n, seed=3, matrix_dtype="int8", feature_bits=7)
+    f = np.random.default_rng(4).standard_normal(n).astype(np.float32)
+    ref = f.astype(np.float64) @ fast.matrix_float32().astype(np.float64)
+    # rounding each feature by at most half a step s_f / 2 moves d_j by ~ s_f/2 sqrt(n/3) |q| s_P:
+    # a few per cent of d's spread, so most bits survive (the measured share on real features:
+    # docs/performance.md)
+    shared = len(set(fast.bits(f).tolist()) & set(P.slsbh(ref).tolist()))
+    assert shared >= 0.9 * 512
+    assert np.corrcoef(fast.project(f), ref)[0, 1] > 0.99
+    for bad in ({"matrix_dtype": "float32"}, {"matrix_dtype": "float16"}, {"projection": "sparse"},
+                {"matrix_dtype": "int8", "input_dim": 140000}):
+        with pytest.raises(ValueError, match="feature_bits 7"):
+            P.ProjectorConfig(feature_bits=7, **bad)
 
 
 def test_bin_import_with_int8_storage(tmp_path):

@@ -30,6 +30,16 @@ the kernel's multiply-adds run on integer vector units instead of widening every
 It is still a Gaussian projection (N(0, 1) draws on a grid of max|P| / 127, about 0.04 standard
 deviations); agreement with float32 and its effect on closures: docs/performance.md.
 
+``feature_bits: 7`` (with ``matrix_dtype: int8``) rounds each feature vector much more coarsely, as
+torch's dynamically quantised linear layer does, and lets that layer's int8 kernels (fbgemm /
+oneDNN, VNNI dot-product instructions where the CPU has them) compute x q: per frame,
+x = rint(f / s_f) + z on the 128 levels 0..127, s_f = (max(f, 0) - min(f, 0)) / 127, zero point z,
+and d = s_f s_P (x q - z * sum(q)), summed exactly in int32 (|x q| <= 127 * 127 * n < 2^31 for
+n <= 133 000) and scaled in float32. The 7-bit range ("reduce_range") is what keeps it exact on
+every x86 CPU: AVX2's 8-bit multiply-add saturates at 2^15 on full 8-bit inputs. Each frame is
+its own call, so its bits do not depend on the batch or the thread count. About half the 16-bit
+kernel's time (0.29x float32's); it moves more bits (agreement and closures: docs/performance.md).
+
 ``projection: sparse`` is Li et al.'s very sparse random projection (entries +-sqrt(1/density) with
 density 1/sqrt(n), zero otherwise), seeded, as a scipy.sparse matrix: ~1/255 of the work.
 
@@ -52,7 +62,7 @@ import numpy as np
 from llvmlite import ir
 from numba import njit, prange, types
 from numba.extending import intrinsic, overload
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from ._config import make_config
 from .errors import InvalidInput
@@ -79,10 +89,23 @@ class ProjectorConfig(BaseModel):
     #: (133 MB, half the memory traffic per frame; every product still accumulates in float32) or
     #: int8 (66 MB; 16-bit integer features, exact integer sums: see the module docstring)
     matrix_dtype: Literal["float32", "float16", "int8"] = "float32"
+    #: with ``matrix_dtype: int8``: features rounded to 16-bit integers (exact numba kernel) or to
+    #: 7 bits per frame (torch's quantised int8 kernels, ~2x faster; see the module docstring)
+    feature_bits: Literal[16, 7] = 16
     #: where B computes: ``cpu`` = the fixed-order numba kernel (default); ``cuda``, ``cuda:N`` or
     #: ``auto`` (cuda when torch sees a GPU, else cpu) = torch on that device, fused with stage A
     #: in one node so that only the bits leave the device (see :class:`TorchProjection`)
     device: str = Field("cpu", pattern=r"^(cpu|auto|cuda(:[0-9]+)?)$")
+
+    @model_validator(mode="after")
+    def _seven_bit_features_need_the_int8_matrix(self) -> ProjectorConfig:
+        if self.feature_bits == 7 and (self.projection != "gaussian" or self.matrix_dtype != "int8"):
+            raise ValueError("feature_bits 7 is the int8 Gaussian matrix's fast kernel: it needs "
+                             f"projection gaussian and matrix_dtype int8 (got {self.projection}, {self.matrix_dtype})")
+        if self.feature_bits == 7 and self.input_dim * 127 * 127 >= 2**31:
+            raise ValueError(f"feature_bits 7 sums in int32: input_dim {self.input_dim} could overflow "
+                             f"(127 * 127 * n must stay below 2^31, n <= {(2**31 - 1) // (127 * 127)})")
+        return self
 
 
 def _chunks(n: int):
@@ -370,6 +393,40 @@ def _slsbh_rows(D, k, out):  # pragma: no cover - compiled
         out[r, k:] = np.sort(asc) + m
 
 
+class QuantisedLinear:
+    """x q with torch's dynamically quantised int8 linear layer (``feature_bits: 7``), one frame per
+    call: the per-frame feature quantisation (7 bits, zero point) is then a function of that frame
+    alone. fbgemm packs q (its own copy, 66 MB at full size) for its int8 kernels."""
+
+    def __init__(self, q: np.ndarray, scale: float) -> None:
+        import warnings
+
+        import torch
+
+        if not hasattr(torch.ops.quantized, "linear_dynamic"):
+            raise RuntimeError(f"torch {torch.__version__} has no quantised linear kernels (needed by "
+                               "projector.feature_bits 7); use feature_bits 16")
+        with warnings.catch_warnings():
+            # torch 2.13 marks quantised-tensor constructors deprecated; the pinned torch has them
+            warnings.simplefilter("ignore", UserWarning)
+            weight = torch._make_per_tensor_quantized_tensor(torch.from_numpy(np.ascontiguousarray(q.T)), float(scale), 0)
+            self.packed = torch.ops.quantized.linear_prepack(weight, None)
+
+    def __call__(self, rows: np.ndarray, threads: int) -> np.ndarray:
+        """(b, n) float32 -> (b, m) float32 = s_f s_P (x q - z sum q) per row."""
+        import torch
+
+        before = torch.get_num_threads()
+        torch.set_num_threads(threads)  # the monolithic topology shares torch's pool with stage A
+        try:
+            with torch.inference_mode():
+                x = torch.from_numpy(rows)
+                return np.concatenate([torch.ops.quantized.linear_dynamic(x[r:r + 1], self.packed, True).numpy()
+                                       for r in range(x.shape[0])])
+        finally:
+            torch.set_num_threads(before)
+
+
 class TorchProjection:
     """B in torch on any device: d = P f and sLSBH there, only the bit indices come back.
 
@@ -465,6 +522,8 @@ class BinaryProjector:
         self.matrix_dtype = cfg.matrix_dtype
         #: s_P of ``matrix_dtype: int8`` (P ~ s_P q); 1.0 for the float storages
         self.matrix_scale = 1.0
+        self.feature_bits = cfg.feature_bits
+        self._quantised_linear: QuantisedLinear | None = None
         if projection == "gaussian" and cfg.matrix_dtype == "int8":
             if matrix_path:
                 self.matrix, self.matrix_scale = quantise_int8(load_bin(matrix_path, input_dim))
@@ -484,6 +543,8 @@ class BinaryProjector:
             self._sparse_rows = self.matrix.T.tocsr()
         else:
             raise ValueError(f"unknown projection {projection!r} (gaussian or sparse)")
+        if cfg.feature_bits == 7:
+            self._quantised_linear = QuantisedLinear(self.matrix, self.matrix_scale)
 
     def matrix_float32(self) -> np.ndarray:
         """P as float32 (n, m), e.g. for :func:`save_bin`; with ``matrix_dtype: float16`` the values
@@ -533,6 +594,8 @@ class BinaryProjector:
         rows = np.ascontiguousarray(rows, dtype=np.float32)
         if self.projection == "sparse":
             return np.asarray((self._sparse_rows @ rows.T).T, dtype=np.float32)
+        if self._quantised_linear is not None:
+            return self._quantised_linear(rows, self.threads)
         numba.set_num_threads(min(self.threads, numba.config.NUMBA_NUM_THREADS))
         if self.matrix_dtype == "int8":
             x, scale = quantise_features(rows)

@@ -29,6 +29,8 @@ def cmd_bench_throughput(args: argparse.Namespace) -> int:
         overrides["projector"] = {"projection": args.projection}
     if args.matrix_dtype:
         overrides.setdefault("projector", {})["matrix_dtype"] = args.matrix_dtype
+    if args.feature_bits:
+        overrides.setdefault("projector", {})["feature_bits"] = args.feature_bits
     if args.image_capacity:
         overrides["bus"] = {"capacity": {"image": args.image_capacity}}
     if args.threads:
@@ -76,6 +78,9 @@ def register(sub: argparse._SubParsersAction, bench_sub: argparse._SubParsersAct
     p.add_argument("--projection", choices=["gaussian", "sparse"], help="override stage B's projection")
     p.add_argument("--matrix-dtype", choices=["float32", "float16", "int8"],
                    help="override the storage of B's Gaussian matrix (projector.matrix_dtype)")
+    p.add_argument("--feature-bits", type=int, choices=[16, 7],
+                   help="with --matrix-dtype int8: features rounded to 16 bits (exact numba kernel) or "
+                        "7 bits (torch's quantised int8 kernels; projector.feature_bits)")
     p.add_argument("--max-batch", type=int, help="override run.max_batch (1: every stage takes one frame at a time)")
     p.add_argument("--image-capacity", type=int, help="override the image ring capacity (bus.capacity.image)")
     p.add_argument("--threads", help='per-stage thread budget as JSON, e.g. \'{"A": 2}\'')

@@ -4,10 +4,13 @@ route -> bench/results/e2e.json.
 Keys: neoslam_mean_m, neoslam_max_m, ratslam_mean_m, ratslam_max_m (trajectory APE after SE(2)
 alignment), odometry_mean_m, frames, fps_lossless (NeoSLAM, pipeline topology, lossless), plus
 the paper's per-node metric, loop closures and per-stage tau. Issue #14 adds neoslam_precision,
-neoslam_recall, ratslam_precision, ratslam_recall (a closure is correct when the matched
-template's first frame lies within ``closure_radius_m`` = 1 m of the frame's true position),
-neoslam_ape_vs_odometry, and the same figures of the paper profile under ``paper_neoslam_*`` (the
-settings before issue #14: ``configs/paper.yaml`` when it ships). Also writes e2e_map.png.
+neoslam_recall, ratslam_precision, ratslam_recall (a closure is correct when the frame where what
+it matched was first seen, closures.csv's matched_frame, lies within ``closure_radius_m`` = 1 m of
+the frame's true position: ``neoslam evaluate``'s rule), {name}_precision_by_template (the same with
+the matched template's first frame, the rule before closures.csv existed),
+neoslam_ape_vs_odometry, {name}_map_trajectory_mean_m (the APE of trajectory_map.tum, every
+frame re-expressed on the final map) and neoslam_map_trajectory_vs_odometry, and the same figures
+of the paper profile under ``paper_neoslam_*`` (``configs/paper.yaml``). Also writes e2e_map.png.
 ``--inprocess``: the same nodes in this process (the in-process API's chain: no zenoh, same
 templates and poses as a lossless run), for a loaded machine; e2e.json then says so.
 Run: ``.venv/bin/python bench/e2e.py [--frames N] [--inprocess]``.
@@ -25,7 +28,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from neoslam_stream.config import ConfigError, load_config  # noqa: E402
-from neoslam_stream.evaluation import evaluate_run  # noqa: E402
+from neoslam_stream.evaluation import evaluate_run, loop_closure_quality, read_tum  # noqa: E402
 from neoslam_stream.launch import run  # noqa: E402
 
 
@@ -96,7 +99,14 @@ def main() -> None:
         res[name]["evaluation"] = ev
         res[f"{name}_mean_m"] = ev["trajectory_ape"]["mean_m"]
         res[f"{name}_max_m"] = ev["trajectory_ape"]["max_m"]
+        if "map_trajectory_ape" in ev:  # every frame re-expressed on the final map (trajectory_map.tum)
+            res[f"{name}_map_trajectory_mean_m"] = ev["map_trajectory_ape"]["mean_m"]
         res[f"{name}_precision"] = ev["loop_closures"]["precision"]
+        # the older criterion as well: the matched TEMPLATE's first frame within the radius (what
+        # the pose cells act on) rather than the first frame of the matched interval (closures.csv)
+        by_template = loop_closure_quality(work / name / "templates.csv", read_tum(work / name / "groundtruth.tum"),
+                                           res["closure_radius_m"])
+        res[f"{name}_precision_by_template"] = by_template["precision"]
         res[f"{name}_recall"] = ev["loop_closures"]["recall"]
         res[f"{name}_closures"] = ev["loop_closures"]["closures"]
         if name == "neoslam":
@@ -109,6 +119,8 @@ def main() -> None:
         print(name, res[f"{name}_mean_m"], res[f"{name}_precision"], flush=True)
     res["neoslam_ape_vs_odometry"] = res["neoslam_mean_m"] / res["odometry_mean_m"]
     res["paper_neoslam_ape_vs_odometry"] = res["paper_neoslam_mean_m"] / res["odometry_mean_m"]
+    if "neoslam_map_trajectory_mean_m" in res:
+        res["neoslam_map_trajectory_vs_odometry"] = res["neoslam_map_trajectory_mean_m"] / res["odometry_mean_m"]
     (out / "e2e.json").write_text(json.dumps(res, indent=2))
     print(json.dumps({k: v for k, v in res.items() if not isinstance(v, dict)}, indent=2))
 

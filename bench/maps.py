@@ -32,7 +32,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from neoslam_stream.config import load_config  # noqa: E402
-from neoslam_stream.evaluation import evaluate_run  # noqa: E402
+from neoslam_stream.evaluation import evaluate_run, loop_closure_quality  # noqa: E402
 from neoslam_stream.nodes.pipelines import build_plan  # noqa: E402
 from neoslam_stream.runtime.config import merge_dicts  # noqa: E402
 from neoslam_stream.runtime.local import LocalChain  # noqa: E402
@@ -130,9 +130,15 @@ def run_synthetic(cfg: Any, data: dict[str, np.ndarray], run_dir: Path) -> dict[
     nodes = np.array([[n["stamp"], n["x"], n["y"]] for n in mp["nodes"]])
     ne, ng = associate(nodes[:, 0], gt[:, 0], max_dt=1.0)
     map_ape = ape(nodes[ne, 1:3], gt[ng, 1:3])  # ape aligns (SE(2)) itself
+    # precision by the matched template's first frame too (the rule before closures.csv existed,
+    # under which the entries made before it were computed)
+    by_template = loop_closure_quality(run_dir / "templates.csv", gt, lc["radius_m"])
     return {"ape_mean_m": ev["trajectory_ape"]["mean_m"], "ape_max_m": ev["trajectory_ape"]["max_m"],
             "odometry_mean_m": ev["odometry_ape"]["mean_m"], "closures": lc["closures"],
-            "final_map_ape_mean_m": map_ape["mean_m"], "precision": lc["precision"], "recall": lc["recall"], "radius_m": lc["radius_m"],
+            "final_map_ape_mean_m": map_ape["mean_m"],
+            "map_trajectory_ape_mean_m": ev.get("map_trajectory_ape", {}).get("mean_m"), "precision": lc["precision"], "recall": lc["recall"], "radius_m": lc["radius_m"],
+            "matched_by": lc.get("matched_by"), "precision_by_template": by_template["precision"],
+            "recall_by_template": by_template["recall"],
             "d_and_backend_s": round(secs, 1)}
 
 
@@ -204,7 +210,8 @@ TUC_LEVERS = [("none", {}, {}, None)] + [
     (f"robust_{k}", {}, {"exp_robust_m": k}, None) for k in (1.0, 3.0, 10.0)] + [
     (f"gate_5_{c}", {"odometry_gate": {"radius_m": 5.0, "drift": c}}, {}, None) for c in (0.05, 0.1, 0.2, 0.3, 0.5)] + [
     ("pc_cell_2m", {"pc_cell_x_size": 2.0}, {}, None), ("pc_inject_0.3", {"pc_vt_inject_energy": 0.3}, {}, None)] + [
-    (f"sequence_{n}", {}, {}, {"length": n, "max_step": 2.0, "slack": 2}) for n in (2, 3, 5)]
+    (f"sequence_{n}", {}, {}, {"length": n, "max_step": 2.0, "slack": 2}) for n in (2, 3, 5)] + [
+    ("odometry_bias", {"odometry_bias": {"enabled": True}}, {}, None)]
 
 
 def tuc_levers() -> dict[str, Any]:
@@ -215,7 +222,8 @@ def tuc_levers() -> dict[str, Any]:
     res = {}
     for name, pc, em, seq in TUC_LEVERS:
         r = tuc.run({**S["pc"], **pc}, {**S["em"], **em}, S["threshold"], S["min_gap_s"], sequence=seq)
-        res[name] = {k: r[k] for k in ("map_mean_m", "odometry_mean_m", "recognised_frames", "gate_refused")}
+        res[name] = {k: r[k] for k in ("map_mean_m", "map_on_final_mean_m", "odometry_mean_m", "recognised_frames",
+                                       "gate_refused", "yaw_bias_rad_s")}
         print("tuc", name, res[name], flush=True)
     return res
 
@@ -319,6 +327,9 @@ LEVERS: dict[str, dict] = {
                        "experience_map": {"exp_loops": 100}},
     "seq5_gate_1_0.1": {"spatial_view": {"sequence": {"length": 5, "max_step": 2.0, "slack": 4}},
                         "pose_cells": {"odometry_gate": {"radius_m": 1.0, "drift": 0.1}}},
+    "odometry_bias": {"pose_cells": {"odometry_bias": {"enabled": True}}},
+    "seq10_odometry_bias": {"spatial_view": {"sequence": {"length": 10, "max_step": 2.0, "slack": 4}},
+                            "pose_cells": {"odometry_bias": {"enabled": True}}},
 }
 
 

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from neoslam_stream.algorithms.ratslam.experience_map import ExperienceMap
+from neoslam_stream.algorithms.ratslam.experience_map import ExperienceMap, poses_on_map
 from neoslam_stream.algorithms.ratslam.pose_cells import CREATE_EDGE, CREATE_NODE
 
 
@@ -154,6 +154,64 @@ def test_node_publishes_a_pose_per_action_and_the_map_at_flush(tmp_path):
     assert [n["id"] for n in saved["nodes"]] == [0, 1, 7] and len(saved["links"]) == 2
     tum = (tmp_path / "trajectory.tum").read_text().splitlines()
     assert [float(line.split()[1]) for line in tum] == pytest.approx([1.0, 2.0, 3.0, 4.0])
+
+
+def test_local_pose_re_expressed_on_the_unchanged_map_is_the_robot_pose():
+    em = ExperienceMap(exp_initial_em_deg=30, exp_loops=0)
+    assert em.local_pose()[0] == -1  # before the first experience: the absolute pose
+    em.on_action(CREATE_NODE, 0, 0, 0.0)
+    em.on_odo(1.0, 0.4, 1.5)
+    em.on_action(CREATE_NODE, 0, 1, 0.0)
+    em.on_odo(0.7, -0.9, 1.0)
+    em.on_odo(0.2, 0.3, 2.0)
+    exp_id, *local = em.local_pose()
+    nodes = {em.ids[i]: (em.x[i], em.y[i], em.th[i]) for i in range(em.n_experiences)}
+    (x, y, th), = poses_on_map(nodes, np.array([exp_id]), np.array([local]))
+    assert (x, y, th) == pytest.approx(em.robot_pose(), abs=1e-12)
+
+
+def test_poses_on_map_follow_their_experience_when_relaxation_moves_it():
+    # by hand: the robot stood 1 m ahead and 0.5 m to the left of experience 4 (heading 0), facing
+    # 0.2 rad more than it; the final map moved experience 4 to (10, 5) and turned it to 90 deg, so
+    # ahead is +y and left is -x: (10 - 0.5, 5 + 1), heading pi/2 + 0.2
+    nodes = {4: (10.0, 5.0, math.pi / 2)}
+    out = poses_on_map(nodes, np.array([4, -1, 9]), np.array([[1.0, 0.5, 0.2], [3.0, 4.0, 0.1], [1.0, 2.0, 0.3]]))
+    np.testing.assert_allclose(out[0], [9.5, 6.0, math.pi / 2 + 0.2], atol=1e-12)
+    # no experience yet (-1), or one the map does not hold: the pose stays as it was
+    np.testing.assert_allclose(out[1:], [[3.0, 4.0, 0.1], [1.0, 2.0, 0.3]])
+
+
+def test_the_recorder_writes_the_trajectory_on_the_final_map(tmp_path):
+    from neoslam_stream.nodes.ratslam import ExperienceMapNode
+    from neoslam_stream.nodes.recorder import RecorderNode
+    from neoslam_stream.runtime.messages import decode, encode
+    from neoslam_stream.tum import read_tum
+
+    st = ExperienceMapNode(exp_initial_em_deg=0, exp_loops=0)
+    rec = RecorderNode()
+    rec.run_dir = str(tmp_path)
+    for m in (_action(0, CREATE_NODE, 0, 0), _action(1, 0, 0, 0), _action(2, CREATE_NODE, 0, 1), _action(3, 0, 1, 1)):
+        (topic, pose), = st.process("pose_cells/action", m)
+        rec.process(topic, decode(encode(pose)))  # the offsets cross the wire
+    (topic, m), = st.flush()
+    # as if relaxation had moved experience 1 (at x = 3) to (3, 2) and turned it by 90 degrees:
+    # frame 2 stood on it, frame 3 1 m ahead of it, i.e. now 1 m along +y
+    export = m["export"]
+    export["nodes"][1].update(x=3.0, y=2.0, theta=math.pi / 2)
+    rec.process(topic, m)
+    rec.flush()
+    on_map = read_tum(tmp_path / "trajectory_map.tum")
+    online = read_tum(tmp_path / "trajectory.tum")
+    np.testing.assert_allclose(on_map[:, 0], online[:, 0])  # the same stamps
+    np.testing.assert_allclose(on_map[:, 1:3], [[1, 0], [2, 0], [3, 2], [3, 3]], atol=1e-9)
+    # a recorder restored from a checkpoint file keeps the offsets
+    from neoslam_stream.runtime.checkpoint import load_state_file, save_state_file
+
+    save_state_file(tmp_path / "rec.state", rec.state_dict())
+    again = RecorderNode()
+    again.load_state_dict(load_state_file(tmp_path / "rec.state"))
+    again.map_export = export
+    assert again.trajectory_on_map() == (tmp_path / "trajectory_map.tum").read_text()
 
 
 def test_actions_without_odometry_are_refused_by_the_topic_schema():

@@ -187,3 +187,88 @@ def test_pose_cell_node_keeps_a_refused_template_from_the_network():
     assert node.gate.refused == 1
     assert node.pc.current_vt == 1  # the network never saw the refused recognition
     assert node.info()["gate_refused"] == 1
+
+
+# ------------------------------------------------------------------ yaw-rate bias from closures
+
+def _circle(est, omega: float, bias: float, seconds: float, dt: float = 0.5) -> None:
+    """Drive a circle at true yaw rate omega for ``seconds``: the odometry reports omega + bias."""
+    for _ in range(round(seconds / dt)):
+        est.correct(omega + bias, dt)
+
+
+def test_yaw_bias_is_the_heading_drift_of_a_closed_loop_over_its_duration():
+    from neoslam_stream.algorithms.ratslam.odometry_bias import YawBiasEstimator
+    from neoslam_stream.algorithms.ratslam.pose_cells import SET_NODE
+
+    # by hand: one full circle in T = 100 s (true yaw rate 2 pi / T) with odometry reading 0.01
+    # rad/s too much; back at experience 0, the raw heading has turned 2 pi + 1 rad, the true
+    # heading 2 pi: drift 1 rad over 100 s, b = 0.01 rad/s
+    est = YawBiasEstimator(enabled=True)
+    est.on_action(CREATE_NODE, 0)
+    _circle(est, 2 * math.pi / 100, 0.01, 100.0)
+    est.on_action(SET_NODE, 0)
+    assert est.bias == pytest.approx(0.01, rel=1e-9) and est.samples == 1
+    assert est.correct(0.3, 0.1) == pytest.approx(0.3 - 0.01)
+    # the same place seen the other way round (half a turn off): an outlier, the estimate stays
+    est.on_action(CREATE_NODE, 1)
+    _circle(est, 2 * math.pi / 100, 0.01, 50.0)  # half a circle: the robot faces the opposite way
+    est.on_action(CREATE_EDGE, 1)
+    assert est.outliers == 1 and est.samples == 1 and est.bias == pytest.approx(0.01, rel=1e-9)
+
+
+def test_yaw_bias_weighs_older_closures_less_and_ignores_quick_returns(tmp_path):
+    from neoslam_stream.algorithms.ratslam.odometry_bias import YawBiasEstimator
+    from neoslam_stream.algorithms.ratslam.pose_cells import SET_NODE
+
+    est = YawBiasEstimator(enabled=True, forget_s=100.0, min_gap_s=30.0, max_residual_rad_s=1.0)
+    est.on_action(CREATE_NODE, 0)
+    _circle(est, 0.0, 0.02, 20.0)
+    est.on_action(SET_NODE, 0)  # 20 s after its creation: under min_gap_s, no sample
+    assert est.samples == 0 and est.bias == 0.0
+    _circle(est, 0.0, 0.02, 20.0)
+    est.on_action(SET_NODE, 0)  # 40 s: drift 0.8 rad over 40 s
+    est.on_action(CREATE_NODE, 5)
+    _circle(est, 0.0, 0.03, 60.0)
+    est.on_action(SET_NODE, 5)  # 60 s later: drift 1.8 rad over 60 s, the first sample 60 s old
+    keep = math.exp(-60.0 / 100.0)
+    expected = (keep * 0.8 * 40 + 1.8 * 60) / (keep * 40 ** 2 + 60 ** 2)
+    assert est.samples == 2 and est.bias == pytest.approx(expected, rel=1e-9)
+    # the state goes through a checkpoint file whole
+    from neoslam_stream.runtime.checkpoint import load_state_file, save_state_file
+
+    save_state_file(tmp_path / "s", est.state_dict())
+    again = YawBiasEstimator(enabled=True, forget_s=100.0)
+    again.load_state_dict(load_state_file(tmp_path / "s"))
+    assert again.state_dict()["scalars"] == est.state_dict()["scalars"] and again.born == est.born
+    # a new session of a loaded map: old experiences are no heading reference any more, the bias stays
+    again.new_session()
+    _circle(again, 0.0, 0.03, 60.0)
+    again.on_action(SET_NODE, 5)  # experience 5 of the old session: taken as new, no sample
+    assert again.samples == 2 and again.bias == est.bias and 5 in again.born
+
+
+def test_yaw_bias_off_leaves_the_odometry_alone():
+    from neoslam_stream.algorithms.ratslam.odometry_bias import YawBiasEstimator
+    from neoslam_stream.algorithms.ratslam.pose_cells import SET_NODE
+
+    est = YawBiasEstimator()  # the paper's profile: off
+    est.on_action(CREATE_NODE, 0)
+    _circle(est, 0.0, 0.05, 100.0)
+    est.on_action(SET_NODE, 0)
+    assert est.samples == 0 and est.correct(0.25, 0.1) == 0.25
+
+
+def test_pose_cell_node_sends_the_corrected_yaw_rate_to_the_map():
+    from neoslam_stream.config import load_config
+    from neoslam_stream.nodes.ratslam import make_pose_cells_node
+    from neoslam_stream.runtime.messages import Message
+
+    assert load_config("default").pose_cells.odometry_bias.enabled
+    assert not load_config("paper").pose_cells.odometry_bias.enabled
+    node = make_pose_cells_node(odometry_bias={"enabled": True})
+    node.bias.bias = 0.02  # as if closures had measured it
+    node.process("visual_template", Message("visual_template", 0, 0.0, {"id": 0}))
+    ((_, action),) = node.process("odom", Message("odom", 0, 0.0, {"vtrans": 1.0, "vrot": 0.5, "dt": 0.1}))
+    assert action["vrot"] == pytest.approx(0.48)
+    assert node.info()["yaw_bias_rad_s"] == pytest.approx(0.02)

@@ -179,6 +179,9 @@ def print_evaluation(ev: dict[str, Any]) -> None:
     print(f"trajectory APE mean {t.get('mean_m', float('nan')):.3f} m (max {t.get('max_m', float('nan')):.3f}); "
           f"odometry APE mean {o.get('mean_m', float('nan')):.3f} m; "
           f"map nodes {ev.get('map_nodes', 0)}, paper metric mean {m.get('mean_m', float('nan')):.3f} m")
+    if "map_trajectory_ape" in ev:
+        print(f"trajectory on the final map (trajectory_map.tum) APE mean {ev['map_trajectory_ape']['mean_m']:.3f} m "
+              f"(max {ev['map_trajectory_ape']['max_m']:.3f})")
     if "loop_closures" in ev:
         print(closures_line(ev["loop_closures"]))
     print("evaluation.json and map.png written")

@@ -106,8 +106,12 @@ def run(pc_params: dict, em_params: dict, threshold: float = 0.8, min_gap_s: flo
         limit_s: float | None = None, sequence: dict | None = None) -> dict:
     """The corridor run through pose cells + experience map. ``pc_params`` may hold an
     ``odometry_gate`` (OdometryGate's parameters: recognitions odometry cannot explain do not
-    reach the pose cells, as in the pose-cell node); ``sequence``: see templates_from_loops."""
-    from ..algorithms.ratslam.experience_map import ExperienceMap
+    reach the pose cells, as in the pose-cell node) and an ``odometry_bias`` (the yaw-rate bias
+    estimated from loop closures and subtracted, as in the pose-cell node); ``sequence``: see
+    templates_from_loops. ``map_on_final_mean_m``: the error of every step re-expressed on the
+    final map (as trajectory_map.tum)."""
+    from ..algorithms.ratslam.experience_map import ExperienceMap, poses_on_map
+    from ..algorithms.ratslam.odometry_bias import YawBiasEstimator
     from ..algorithms.ratslam.odometry_gate import OdometryGate
     from ..algorithms.ratslam.pose_cells import PoseCellNetwork
 
@@ -117,8 +121,9 @@ def run(pc_params: dict, em_params: dict, threshold: float = 0.8, min_gap_s: flo
     pc = PoseCellNetwork(**pc_params)
     em = ExperienceMap(**em_params)
     gate = OdometryGate(pc.cfg.odometry_gate)
+    bias = YawBiasEstimator(pc.cfg.odometry_bias)
     fi = 0
-    est, dr = [], []
+    est, dr, local = [], [], []
     x = y = 0.0
     th = math.radians(em.cfg.exp_initial_em_deg)
     prev_t = odom[0, 0]
@@ -132,14 +137,17 @@ def run(pc_params: dict, em_params: dict, threshold: float = 0.8, min_gap_s: flo
                 recognised += int(vt in pc.templates)
                 pc.on_view_template(vt, 0.0)
             fi += 1
-        pc.on_odo(vx, wz, dt)
-        gate.on_odo(vx, wz, dt)
-        em.on_odo(vx, wz, dt)
+        wc = bias.correct(wz, dt)
+        pc.on_odo(vx, wc, dt)
+        gate.on_odo(vx, wc, dt)
+        em.on_odo(vx, wc, dt)
         a, s, d, rr = pc.get_action()
+        bias.on_action(a, d, rr)
         if a:
             em.on_action(a, s, d, rr, t)
         px, py, _ = em.robot_pose()
         est.append((t, px, py))
+        local.append(em.local_pose())
         th += wz * dt
         x += vx * dt * math.cos(th)
         y += vx * dt * math.sin(th)
@@ -149,8 +157,14 @@ def run(pc_params: dict, em_params: dict, threshold: float = 0.8, min_gap_s: flo
     ref = gt[idx, 1:3]
     err_map = np.linalg.norm(align_rigid_2d(est[:, 1:], ref) - ref, axis=1)
     err_odo = np.linalg.norm(align_rigid_2d(dr[:, 1:], ref) - ref, axis=1)
+    nodes = {em.ids[k]: (em.x[k], em.y[k], em.th[k]) for k in range(em.n_experiences)}
+    loc = np.array(local, dtype=np.float64).reshape(-1, 4)
+    on_map = poses_on_map(nodes, loc[:, 0].astype(np.int64), loc[:, 1:])[:, :2]
+    err_on_map = np.linalg.norm(align_rigid_2d(on_map, ref) - ref, axis=1)
     return {"steps": len(odom), "frames": len(frame_times), "templates": len(set(ids.values())),
             "recognised_frames": recognised, "gate_refused": gate.refused, "experiences": em.n_experiences, "links": len(em.links),
             "map_mean_m": float(err_map.mean()), "map_max_m": float(err_map.max()),
+            "map_on_final_mean_m": float(err_on_map.mean()), "yaw_bias_rad_s": bias.bias,
+            "yaw_bias_samples": bias.samples,
             "odometry_mean_m": float(err_odo.mean()), "odometry_max_m": float(err_odo.max()),
             "threshold": threshold, "min_gap_s": min_gap_s, "est": est, "odo": dr, "gt": ref}

@@ -151,6 +151,11 @@ def evaluate_run(run_dir: str | Path, gt_path: str | Path | None = None, radius:
     ie, ig = associate(traj[:, 0], gt[:, 0])
     result["trajectory_ape"] = ape(traj[ie, 1:3], gt[ig, 1:3])
     result["trajectory_paper"] = paper_metric(traj[ie, 1:3], gt[ig, 1:3])
+    on_map = run_dir / "trajectory_map.tum"
+    if on_map.exists():  # every frame re-expressed on the final, relaxed map (docs/evaluation.md)
+        smooth = read_tum(on_map)
+        se, sg = associate(smooth[:, 0], gt[:, 0])
+        result["map_trajectory_ape"] = ape(smooth[se, 1:3], gt[sg, 1:3])
     mp = json.loads((run_dir / "map.json").read_text()) if (run_dir / "map.json").exists() else {"nodes": []}
     nodes = np.array([[n["stamp"], n["x"], n["y"]] for n in mp["nodes"]]).reshape(-1, 3)
     if len(nodes):

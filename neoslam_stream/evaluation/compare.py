@@ -16,7 +16,8 @@ BRANCHES = (("neoslam", "NeoSLAM (default)", "", ""), ("neoslam_paper", "NeoSLAM
             ("ratslam", "RatSLAM", "ratslam", "rs_"))
 #: compare.json columns, with the short headers of the printed table
 COLUMNS = (("frames_processed", "frames"), ("trajectory_ape_mean_m", "APE mean m"),
-           ("trajectory_ape_max_m", "APE max m"), ("map_paper_mean_m", "paper mean m"),
+           ("trajectory_ape_max_m", "APE max m"), ("map_trajectory_ape_mean_m", "APE on map m"),
+           ("map_paper_mean_m", "paper mean m"),
            ("map_nodes", "map nodes"), ("loop_closures", "closures"), ("loop_precision", "precision"),
            ("loop_recall", "recall"))
 #: the stage whose processed count is a branch's frames (its template producer)
@@ -63,6 +64,7 @@ def compare_runs(out: Path, report: dict[str, Any], radius: float = 1.0) -> dict
             "frames_processed": mine.get(tpl, {}).get("processed"),
             "trajectory_ape_mean_m": ev.get("trajectory_ape", {}).get("mean_m"),
             "trajectory_ape_max_m": ev.get("trajectory_ape", {}).get("max_m"),
+            "map_trajectory_ape_mean_m": ev.get("map_trajectory_ape", {}).get("mean_m"),
             "map_paper_mean_m": ev.get("map_paper", {}).get("mean_m"),
             "map_paper_max_m": ev.get("map_paper", {}).get("max_m"),
             "map_nodes": ev.get("map_nodes"),

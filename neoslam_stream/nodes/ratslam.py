@@ -22,6 +22,7 @@ import numpy as np
 from ..algorithms.errors import InvalidInput
 from ..algorithms.ratslam.experience_map import ExperienceMap, ExperienceMapConfig
 from ..algorithms.ratslam.local_view import LocalViewCells, LocalViewConfig
+from ..algorithms.ratslam.odometry_bias import YawBiasEstimator
 from ..algorithms.ratslam.odometry_gate import OdometryGate
 from ..algorithms.ratslam.pose_cells import PoseCellConfig, PoseCellNetwork
 from ..algorithms.ratslam.visual_odometry import VisualOdometry, VisualOdometryConfig
@@ -45,6 +46,7 @@ class PoseCellsNode(Node):
         super().__init__()
         self.pc = PoseCellNetwork(PoseCellConfig(**params))
         self.gate = OdometryGate(self.pc.cfg.odometry_gate)
+        self.bias = YawBiasEstimator(self.pc.cfg.odometry_bias)
         self.max_odom_lag = max_odom_lag
         self.pending: OrderedDict[int, Message] = OrderedDict()  # odometry by frame
         self.templates_waiting: OrderedDict[int, Message] = OrderedDict()
@@ -64,10 +66,14 @@ class PoseCellsNode(Node):
         self.last_odom_frame = max(self.last_odom_frame, msg.frame)
         if not (math.isfinite(dt) and dt >= 0):
             raise StageInputError(f"odometry dt {dt} is not a finite non-negative number")
+        # with odometry_bias on, everything downstream (pose cells, gate, the experience map via the
+        # action message) integrates the yaw rate less the bias estimated so far
+        vrot = self.bias.correct(vrot, dt)
         self.pc.on_odo(vtrans, vrot, dt)
         if self.gate.enabled:
             self.gate.on_odo(vtrans, vrot, dt)
         action, src, dst, rr = self.pc.get_action()
+        self.bias.on_action(action, dst, rr)
         self.actions[action] += 1
         data = {"action": action, "src_id": src, "dst_id": dst, "relative_rad": rr,
                 "vtrans": vtrans, "vrot": vrot, "dt": dt}
@@ -139,10 +145,13 @@ class PoseCellsNode(Node):
         return {"templates": len(self.pc.templates), "experiences": len(self.pc.experiences),
                 "actions": {str(k): v for k, v in self.actions.items()}, "pending_odom": len(self.pending),
                 "gate_refused": self.gate.refused,
+                **({"yaw_bias_rad_s": round(self.bias.bias, 6), "yaw_bias_samples": self.bias.samples,
+                    "yaw_bias_outliers": self.bias.outliers} if self.bias.enabled else {}),
                 "best_pose_cells": [round(v, 3) for v in self.pc.best]}
 
     def state_dict(self) -> dict[str, Any]:
-        return {"pc": self.pc.state_dict(), "gate": self.gate.state_dict(), "last_template_frame": self.last_template_frame,
+        return {"pc": self.pc.state_dict(), "gate": self.gate.state_dict(), "bias": self.bias.state_dict(),
+                "last_template_frame": self.last_template_frame,
                 "max_odom_frame": self.max_odom_frame, "last_odom_frame": self.last_odom_frame,
                 "actions": {str(k): v for k, v in self.actions.items()},
                 "prev_odom_stamp": -1.0 if self.prev_odom_stamp is None else self.prev_odom_stamp,
@@ -154,6 +163,8 @@ class PoseCellsNode(Node):
         self.pc.load_state_dict(st["pc"])
         if "gate" in st:
             self.gate.load_state_dict(st["gate"])
+        if "bias" in st:
+            self.bias.load_state_dict(st["bias"])
         self.last_template_frame = int(st["last_template_frame"])
         self.max_odom_frame = int(st["max_odom_frame"])
         self.last_odom_frame = int(st.get("last_odom_frame", -1))
@@ -171,6 +182,7 @@ class PoseCellsNode(Node):
         self.pending, self.templates_waiting = OrderedDict(), OrderedDict()
         self.last_template_frame = self.max_odom_frame = self.last_odom_frame = -1
         self.prev_odom_stamp = None
+        self.bias.new_session()
 
 
 class ExperienceMapNode(Node):
@@ -212,7 +224,11 @@ class ExperienceMapNode(Node):
         x, y, th = self.em.robot_pose()
         self.last_frame, self.last_stamp = msg.frame, msg.stamp
         pose = np.array([x, y, th], dtype=np.float64)
-        return [(EXPERIENCE_POSE, msg.derive(EXPERIENCE_POSE, {"pose": pose, "exp_id": self.em.current}))]
+        exp_id, *local = self.em.local_pose()
+        # the pose relative to its experience as well, so that the recorder can re-express the
+        # whole trajectory on the final, relaxed map (trajectory_map.tum)
+        return [(EXPERIENCE_POSE, msg.derive(EXPERIENCE_POSE, {"pose": pose, "exp_id": exp_id,
+                                                               "local": np.array(local, dtype=np.float64)}))]
 
     def flush(self) -> Output:
         ex = self.em.export()

@@ -27,7 +27,12 @@ Writing, so that a crash or a full disk loses as little as possible and never te
   frame (which the source publishes before the image reaches the front end); it is written with an
   empty distance once the ground-truth stream has passed its frame without it, or after
   ``GT_WAIT_ROWS`` closures when no ground truth came at all (a source without it), or at the end.
-* ``map.json`` is written at the end to a temporary file, fsynced and renamed over the old one.
+* ``map.json`` is written at the end to a temporary file, fsynced and renamed over the old one,
+  and so is ``trajectory_map.tum``: every frame's pose re-expressed on that final map (its offset
+  from its experience, as the experience map sent it, applied to where relaxation left the
+  experience: :func:`poses_on_map`), i.e. the trajectory smoothed by every loop closure of the run,
+  later ones included. It holds the frames whose pose the recorder holds (all of them, unless a
+  crash restarted it without a checkpoint).
 * An ``OSError`` (disk full) is logged once per file with the path (``disk full writing
   RUN/map.json: ...``), counted (``counters["write_errors"]``); the rows not written wait and are
   tried again at most every ``RETRY_S`` seconds and at the end. What was written stays intact.
@@ -44,6 +49,7 @@ from typing import Any
 
 import numpy as np
 
+from ..algorithms.ratslam.experience_map import poses_on_map
 from ..runtime.files import AppendFile, complete_lines, describe_write_error, write_atomic
 from ..runtime.messages import Message
 from ..runtime.node import Node, Output
@@ -62,6 +68,8 @@ CLOSURES_HEADER = "frame,stamp,template_id,matched_frame,true_distance_m,score,s
 #: the recorder's journal of the rows it appended (see the module docstring)
 JOURNAL = ".recorder.journal"
 TEMPLATES, TRAJECTORY, CLOSURES = "templates.csv", "trajectory.tum", "closures.csv"
+#: the trajectory re-expressed on the final map (written at the end, see the module docstring)
+TRAJECTORY_ON_MAP = "trajectory_map.tum"
 #: closure rows that wait for ground truth before they are written without it when none has come
 GT_WAIT_ROWS = 64
 #: the outputs as ROS 2 messages (docs/ros2.md)
@@ -123,6 +131,8 @@ class RecorderNode(Node):
         self.templates: list[tuple[int, float, int, int, int, Any]] = []
         self.trajectory: list[tuple[int, float, float, float, float, int]] = []
         self.map_export: dict[str, Any] | None = None
+        #: frame -> (stamp, experience id, dx, dy, dtheta in its frame) for trajectory_map.tum
+        self.local_poses: dict[int, tuple[float, int, float, float, float]] = {}
         #: closures.csv rows written (frame, stamp, template, matched frame, distance, score, second)
         self.closures: list[tuple] = []
         #: closure rows waiting for the ground truth of their frame
@@ -157,8 +167,11 @@ class RecorderNode(Node):
             self._groundtruth(msg.frame, d["pose"])
         elif topic == EXPERIENCE_POSE:
             x, y, th = (float(v) for v in d["pose"])
-            self._add("p", (msg.frame, msg.stamp, x, y, th, int(d.get("exp_id", -1))), self.trajectory,
-                      trajectory_line)
+            exp_id = int(d.get("exp_id", -1))
+            if d.get("local") is not None:  # kept even for a frame written before a restart
+                dx, dy, dth = (float(v) for v in d["local"])
+                self.local_poses[msg.frame] = (msg.stamp, exp_id, dx, dy, dth)
+            self._add("p", (msg.frame, msg.stamp, x, y, th, exp_id), self.trajectory, trajectory_line)
         else:
             self.map_export = d.get("export")
         return []
@@ -365,9 +378,26 @@ class RecorderNode(Node):
                 write_atomic(path, json.dumps(self.map_export).encode())
             except OSError as exc:  # the previous map.json, if any, is intact
                 self._failed(path, exc)
+            if self.local_poses:
+                path = Path(self.run_dir) / TRAJECTORY_ON_MAP
+                try:
+                    write_atomic(path, self.trajectory_on_map().encode())
+                except OSError as exc:
+                    self._failed(path, exc)
         if self.mcap is not None:
             self._write_mcap()
         return []
+
+    def trajectory_on_map(self) -> str:
+        """trajectory_map.tum's text: the frames' poses on the final map (``trajectory.tum``'s
+        format, in frame order)."""
+        nodes = {int(n["id"]): (float(n["x"]), float(n["y"]), float(n["theta"]))
+                 for n in (self.map_export or {}).get("nodes", [])}
+        frames = sorted(self.local_poses)
+        rows = [self.local_poses[f] for f in frames]
+        poses = poses_on_map(nodes, np.array([r[1] for r in rows], dtype=np.int64),
+                             np.array([r[2:] for r in rows], dtype=np.float64))
+        return "".join(trajectory_line((f, r[0], *p)) for f, r, p in zip(frames, rows, poses.tolist(), strict=True))
 
     def _write_mcap(self) -> None:
         """outputs.mcap: the run's outputs as the ROS 2 messages of the live output, rebuilt from
@@ -408,6 +438,8 @@ class RecorderNode(Node):
                                      for r in self.closures_waiting],
                 "template_first": ints(self.template_first), "interval_first": ints(self.interval_first),
                 "places": where(self.places), "gt": where(self.gt), "gt_last_frame": self.gt_last_frame,
+                "local_poses": np.array([(f, *r) for f, r in sorted(self.local_poses.items())],
+                                        dtype=np.float64).reshape(-1, 6),
                 "last_template_frame": self.last_template_frame}
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
@@ -428,12 +460,15 @@ class RecorderNode(Node):
                        for r in np.asarray(st.get("places", []), dtype=np.float64).reshape(-1, 3)}
         self.gt = {int(r[0]): (float(r[1]), float(r[2]))
                    for r in np.asarray(st.get("gt", []), dtype=np.float64).reshape(-1, 3)}
+        self.local_poses = {int(r[0]): (float(r[1]), int(r[2]), float(r[3]), float(r[4]), float(r[5]))
+                            for r in np.asarray(st.get("local_poses", []), dtype=np.float64).reshape(-1, 6)}
         self.gt_last_frame = int(st.get("gt_last_frame", -1))
         self.last_template_frame = int(st.get("last_template_frame", -1))
         self._first_frames = set(self.template_first.values()) | set(self.interval_first.values())
 
     def new_session(self) -> None:
         self.templates, self.trajectory, self.map_export = [], [], None  # this session's outputs only
+        self.local_poses = {}
         self.closures, self.closures_waiting = [], []
         # an old session's templates may be matched again: keep where they were first seen, but a
         # new session's frame numbers start afresh, so its first frames are no places of this one

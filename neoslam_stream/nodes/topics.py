@@ -49,10 +49,12 @@ POSE_CELL_ACTION = Topic("pose_cells/action", {
     "vtrans": Field("float", finite=True), "vrot": Field("float", finite=True),
     "dt": Field("float", finite=True),
 })
-#: The experience map's pose of the robot after each action (x, y, theta) and its experience
+#: The experience map's pose of the robot after each action (x, y, theta), its experience, and the
+#: pose in that experience's frame (dx, dy, dtheta: ExperienceMap.local_pose)
 EXPERIENCE_POSE = Topic("experience_map/pose", {
     "pose": Field("array", ("float64", "float32"), (1,), (3,)),
     "exp_id": Field("int", optional=True),
+    "local": Field("array", ("float64", "float32"), (1,), (3,), optional=True, finite=True),
 })
 #: The whole map at the end of a run: nodes (id, x, y, theta, stamp), links (from, to), and the
 #: full export (``ExperienceMap.export()``: what map.json holds)

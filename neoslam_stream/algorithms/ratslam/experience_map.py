@@ -119,6 +119,26 @@ def _relax(x, y, th, lfrom, lto, ld, lhead, lface, loops, corr, robust=0.0):  # 
                 th[e1] = _clip(th[e1] - df * c)
 
 
+def poses_on_map(nodes: dict[int, tuple[float, float, float]], exp_ids: np.ndarray,
+                 local: np.ndarray) -> np.ndarray:
+    """Poses (k, 3) re-expressed on a (relaxed) map: each pose's offset ``local`` (dx, dy, dtheta) in
+    the frame of its experience (:meth:`ExperienceMap.local_pose`) applied to that experience's
+    pose in ``nodes`` (id -> x, y, theta): x_e + R(theta_e) (dx, dy), theta_e + dtheta. Rows whose
+    experience is -1 or not in ``nodes`` keep ``local`` as it is (a pose before the first
+    experience is already absolute)."""
+    local = np.asarray(local, dtype=np.float64).reshape(-1, 3)
+    out = local.copy()
+    for i, e in enumerate(np.asarray(exp_ids).reshape(-1).tolist()):
+        node = nodes.get(int(e))
+        if node is None:
+            continue
+        x, y, th = node
+        c, s = math.cos(th), math.sin(th)
+        dx, dy, dth = local[i]
+        out[i] = (x + c * dx - s * dy, y + s * dx + c * dy, clip_pi(th + dth))
+    return out
+
+
 def _grow(a: np.ndarray, n: int) -> np.ndarray:
     """``a`` with room for at least n rows (capacity doubles, so appends are amortised O(1))."""
     if n <= a.shape[0]:
@@ -312,6 +332,17 @@ class ExperienceMap:
             return (self.accum_dx, self.accum_dy, self.accum_facing)
         x, y = self._nodes[self._cur, :2]
         return (float(x) + self.accum_dx, float(y) + self.accum_dy, self.accum_facing)
+
+    def local_pose(self) -> tuple[int, float, float, float]:
+        """(experience id, dx, dy, dtheta): :meth:`robot_pose` in the current experience's own frame
+        (rotated by minus its heading), so that :func:`poses_on_map` can re-express it wherever
+        relaxation later moves that experience. Before the first experience: (-1, robot pose)."""
+        if self._cur < 0:
+            return (-1, self.accum_dx, self.accum_dy, self.accum_facing)
+        th = float(self._nodes[self._cur, 2])
+        c, s = math.cos(th), math.sin(th)
+        return (self.ids[self._cur], c * self.accum_dx + s * self.accum_dy, -s * self.accum_dx + c * self.accum_dy,
+                clip_pi(self.accum_facing - th))
 
     @staticmethod
     def warm_up() -> None:

@@ -43,6 +43,7 @@ from scipy.ndimage import correlate1d
 
 from .._config import make_config
 from ..errors import InvalidInput
+from .odometry_bias import OdometryBiasConfig
 from .odometry_gate import OdometryGateConfig
 
 NO_ACTION, CREATE_NODE, CREATE_EDGE, SET_NODE = 0, 1, 2, 3
@@ -70,6 +71,9 @@ class PoseCellConfig(BaseModel):
     #: issue #14: templates whose place odometry cannot explain do not reach the network (used by
     #: the pose-cell node, see odometry_gate.py; radius_m 0 = off, OpenRatSLAM)
     odometry_gate: OdometryGateConfig = Field(default_factory=OdometryGateConfig)
+    #: issue #14: the odometry's yaw-rate bias estimated from loop closures and subtracted (used by
+    #: the pose-cell node, see odometry_bias.py; enabled false = off, OpenRatSLAM)
+    odometry_bias: OdometryBiasConfig = Field(default_factory=OdometryBiasConfig)
 
 
 def _wrapped_support(mask: np.ndarray, margin: int) -> np.ndarray | None:

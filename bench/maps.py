@@ -330,6 +330,9 @@ LEVERS: dict[str, dict] = {
     "odometry_bias": {"pose_cells": {"odometry_bias": {"enabled": True}}},
     "seq10_odometry_bias": {"spatial_view": {"sequence": {"length": 10, "max_step": 2.0, "slack": 4}},
                             "pose_cells": {"odometry_bias": {"enabled": True}}},
+    **{f"seq10_bias_forget{f}": {"spatial_view": {"sequence": {"length": 10, "max_step": 2.0, "slack": 4}},
+                                 "pose_cells": {"odometry_bias": {"enabled": True, "forget_s": float(f)}}}
+       for f in (0, 60, 300)},
 }
 
 

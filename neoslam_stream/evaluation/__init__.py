@@ -147,15 +147,19 @@ def evaluate_run(run_dir: str | Path, gt_path: str | Path | None = None, radius:
         raise FileNotFoundError(f"no ground truth: {gt_file} (give --gt FILE)")
     gt = read_tum(gt_file)
     result: dict[str, Any] = {"ground_truth": str(gt_file)}
+
+    def matched(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(estimate xy, ground truth xy) of the rows with a ground-truth sample near in time."""
+        ie, ig = associate(rows[:, 0], gt[:, 0])
+        return rows[ie, 1:3], gt[ig, 1:3]
+
     traj = read_tum(run_dir / "trajectory.tum")
-    ie, ig = associate(traj[:, 0], gt[:, 0])
-    result["trajectory_ape"] = ape(traj[ie, 1:3], gt[ig, 1:3])
-    result["trajectory_paper"] = paper_metric(traj[ie, 1:3], gt[ig, 1:3])
+    est, ref = matched(traj)
+    result["trajectory_ape"] = ape(est, ref)
+    result["trajectory_paper"] = paper_metric(est, ref)
     on_map = run_dir / "trajectory_map.tum"
     if on_map.exists():  # every frame re-expressed on the final, relaxed map (docs/evaluation.md)
-        smooth = read_tum(on_map)
-        se, sg = associate(smooth[:, 0], gt[:, 0])
-        result["map_trajectory_ape"] = ape(smooth[se, 1:3], gt[sg, 1:3])
+        result["map_trajectory_ape"] = ape(*matched(read_tum(on_map)))
     mp = json.loads((run_dir / "map.json").read_text()) if (run_dir / "map.json").exists() else {"nodes": []}
     nodes = np.array([[n["stamp"], n["x"], n["y"]] for n in mp["nodes"]]).reshape(-1, 3)
     if len(nodes):
@@ -164,10 +168,9 @@ def evaluate_run(run_dir: str | Path, gt_path: str | Path | None = None, radius:
         result["map_nodes"] = int(len(nodes))
     odo_file = run_dir / "odometry.tum"
     if odo_file.exists():
-        odo = read_tum(odo_file)
-        oe, og = associate(odo[:, 0], gt[:, 0])
-        result["odometry_ape"] = ape(odo[oe, 1:3], gt[og, 1:3])
-        result["odometry_paper"] = paper_metric(odo[oe, 1:3], gt[og, 1:3])
+        est, ref = matched(read_tum(odo_file))
+        result["odometry_ape"] = ape(est, ref)
+        result["odometry_paper"] = paper_metric(est, ref)
     if (run_dir / "templates.csv").exists():
         result["loop_closures"] = loop_closure_quality(run_dir / "templates.csv", gt, radius,
                                                        closures_csv=run_dir / "closures.csv")

@@ -48,10 +48,6 @@ class OdometryBiasConfig(BaseModel):
     forget_s: float = Field(120.0, ge=0, description="a sample's weight is exp(-age / forget_s) (0: never forgotten)")
 
 
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
-
-
 class YawBiasEstimator:
     """See the module docstring. Per odometry sample :meth:`correct` (returns the corrected yaw
     rate), per pose-cell action :meth:`on_action`."""
@@ -82,6 +78,8 @@ class YawBiasEstimator:
     def on_action(self, action: int, dst: int, relative_rad: float = 0.0) -> None:
         """A pose-cell action (see pose_cells.get_action): note new experiences, and take a sample
         when the cells return to an old one."""
+        # imported here: pose_cells (and experience_map, through it) import this module's config
+        from .experience_map import clip_pi
         from .pose_cells import CREATE_EDGE, NO_ACTION, SET_NODE
 
         if not self.enabled or action == NO_ACTION:
@@ -96,7 +94,7 @@ class YawBiasEstimator:
         gap = self.t - t0
         if gap < self.config.min_gap_s or gap <= 0:
             return
-        drift = _wrap(self.heading - h0 - relative_rad - self.bias * gap) + self.bias * gap
+        drift = clip_pi(self.heading - h0 - relative_rad - self.bias * gap) + self.bias * gap
         if self.samples and abs(drift / gap - self.bias) > self.config.max_residual_rad_s:
             self.outliers += 1
             return

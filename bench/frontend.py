@@ -189,7 +189,7 @@ def main() -> None:
                     help="only the measurements of issue #16 (B storage, D on real SDRs, float16 "
                          "agreement), merged into --out")
     ap.add_argument("--part", choices=["b", "d"],
-                    help="with --issue16: only B (storage timings and agreement) or only D (real SDRs)")
+                    help="with --issue16: only B (storage timings and agreement) or only D (real and random SDRs)")
     ap.add_argument("--timing-only", action="store_true",
                     help="re-measure A, B, D and keep the Nordland results already in --out")
     args = ap.parse_args()
@@ -208,7 +208,11 @@ def main() -> None:
             real = real_sdrs.bench_d_real(k, 100 if args.quick else 200, rec)
             res[f"d_real_k{k}"] = real
             res[f"d_ms_real_k{k}"] = real["compute_ms_bounded"]
+            res.pop("d_real_conditions", None)  # now recorded in each d_real_k* block
             print("D real", real, flush=True)
+            for kr in (1000, 10000, 100000):  # and on random SDRs (the same keys as the full run)
+                res[f"d_ms_k{kr}"] = bench_d(kr, 300)
+                print("D random", kr, res[f"d_ms_k{kr}"], flush=True)
         for dtype in ("float16", "int8", "int8_7bit") if args.part != "d" else ():
             res[f"b_{dtype}_agreement"] = {"synthetic": real_sdrs.storage_synthetic(rec, dtype),
                                            "nordland": real_sdrs.storage_nordland(8 if args.quick else 4, dtype)}

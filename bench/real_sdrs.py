@@ -13,6 +13,7 @@ Run alone: ``.venv/bin/python bench/real_sdrs.py`` (prints the float16 and int8 
 from __future__ import annotations
 
 import json
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -206,13 +207,16 @@ def grow_index(cells: list[np.ndarray], k_target: int, swap: float = 0.05, seed:
 def bench_d_real(k_target: int, queries: int, rec: dict[str, Any] | None = None) -> dict[str, Any]:
     """D at k_target intervals of real SDRs (see :func:`grow_index`): per query, the exhaustive
     scoring and the bounded search on the same index (alternating which goes first, results
-    checked equal), then the whole ``compute`` with the bounded search; medians in ms."""
+    checked equal), then the whole ``compute`` with the bounded search (its data evicted from the
+    caches by the 126 MB exhaustive pass just before: ``compute_ms_bounded``); then as many other
+    queries through ``compute`` alone, one after another as D's worker runs them
+    (``compute_ms_stream``); medians in ms."""
     import time
 
     rec = rec or record_synthetic()
     svc, perturb = grow_index(rec["cells"], k_target)
     stream = [perturb(c) for c in rec["cells"][:queries]]
-    t_exh, t_bnd, t_full, reads, verified = [], [], [], [], []
+    t_exh, t_bnd, t_full, reads, verified, paths = [], [], [], [], [], []
     for i, c in enumerate(stream):
         y = svc._validate(c)
         limit = svc.n_intervals - svc.omega
@@ -226,16 +230,29 @@ def bench_d_real(k_target: int, queries: int, rec: dict[str, Any] | None = None)
             raise AssertionError(f"bounded search differs from exhaustive scoring at query {i}")
         reads.append(svc.last_search[0])
         verified.append(svc.last_search[1])
+        paths.append(svc.last_path)
         t0 = time.perf_counter()
         svc.compute(c)
         t_full.append((time.perf_counter() - t0) * 1e3)
+    t_stream = []
+    for c in [perturb(c) for c in rec["cells"][-queries:]]:
+        t0 = time.perf_counter()
+        svc.compute(c)
+        t_stream.append((time.perf_counter() - t0) * 1e3)
     postings = int(sum(svc._count[svc._validate(c)].sum() for c in stream[:50]) / min(50, len(stream)))
     return {"intervals": svc.n_intervals, "queries": len(stream), "identical": True,
+            "load_average_1min_at_end": round(os.getloadavg()[0], 2), "cpu_threads": os.cpu_count(),
             "scoring_ms_exhaustive": float(np.median(t_exh)), "scoring_ms_bounded": float(np.median(t_bnd)),
-            "compute_ms_bounded": float(np.median(t_full)),
+            "compute_ms_bounded": float(np.median(t_full)), "compute_ms_stream": float(np.median(t_stream)),
+            "compute_ms_stream_p95": float(np.percentile(t_stream, 95)),
+            "search_path_sliced_fraction": float(np.mean([p == "sliced" for p in paths])),
+            "dense_rows": int(svc._n_dense - 1), "dense_rows_mb": float(svc._dense.nbytes / 1e6),
             "speedup_scoring": float(np.median(t_exh) / np.median(t_bnd)),
             "postings_read_bounded": float(np.median(reads)), "postings_per_query_all": postings,
             "unions_verified": float(np.median(verified)),
+            "search_counters": "postings_read_bounded / unions_verified: posting-list search: postings read, unions "
+                               "scored exactly; bit-sliced count: postings of cells without a dense row, intervals "
+                               "whose count reached the runner-up",
             "mean_union_cells": float(np.mean([len(u) for u in svc.unions])),
             "source": f"{len(rec['cells'])} frames of the synthetic world through the default NeoSLAM front end "
                       f"(A {rec['backbone']}, B gaussian, C temporal memory), replayed with 5 % of each "

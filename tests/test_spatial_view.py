@@ -267,3 +267,72 @@ def test_bounded_search_edge_cases():
     c.compute(block(6))  # interval 4; interval 3 (block 1) becomes a candidate
     r = c.compute(block(1))  # interval 5: intervals 1 and 3 tie at 6, the lower index is the best
     assert (r["best_interval"], r["best_score"]) == (1, 6) and c.runner_up == (3, 6)
+
+
+# ------------------------------------------------------------- bit-sliced count over dense rows (#16)
+
+def _dense_stream(n_frames, n_places, seed, noise):
+    """Real SDRs' shape (docs/frontend.md): winner cell 0 of 512 of 2048 columns, so only ~2048
+    cells ever occur and most get dense rows; plus a few cells anywhere in 65536 (no dense row)."""
+    frames = _route_stream(n_frames, n_places, seed, noise, cells=1)
+    rng = np.random.default_rng(seed + 100)
+    return [np.union1d(f, rng.choice(65536, 4, replace=False)).astype(np.uint32) for f in frames]
+
+
+@pytest.mark.parametrize("noise,theta_sigma", [(0.08, 440), (0.3, 250)])
+def test_bit_sliced_search_equals_a_brute_force_scan_of_every_interval(monkeypatch, noise, theta_sigma):
+    import neoslam_stream.algorithms.spatial_view as sv
+
+    # rows appear early and while merges run (their lists then sit in all three parts)
+    monkeypatch.setattr(sv, "DENSE_MIN", 8)
+    monkeypatch.setattr(sv, "COMPACT_MIN", 3000)
+    frames = _dense_stream(480, 25, seed=4, noise=noise)
+    params = dict(theta_alpha=384, theta_rho=3, theta_sigma=theta_sigma, exclude_recent_intervals=3)
+    svc = sv.SpatialViewCells(**params)
+    svc.sliced = True
+    got, paths = [], []
+    for f in frames:
+        r = svc.compute(f)
+        got.append((r["id"], r["is_loop_closure"], r["best_interval"], r["best_score"], *svc.runner_up))
+        paths.append(svc.last_path)
+    expected = _brute_force_full(frames, params["theta_alpha"], params["theta_rho"], theta_sigma,
+                                 params["exclude_recent_intervals"])
+    assert got == expected
+    assert paths.count("sliced") > 0.9 * len(frames) and svc.merges >= 3
+    assert 1000 < svc._n_dense - 1 < 2100  # the route's cells got rows, the random extra ones did not
+    assert 0 < sum(e[1] for e in expected) < len(frames)
+
+
+def test_bit_sliced_search_across_blocks_and_limits_equals_exhaustive_scoring():
+    import neoslam_stream.algorithms.spatial_view as sv
+
+    # > one block of SLICE_BLOCK intervals, loaded like a checkpoint (rows built from the lists)
+    rng = np.random.default_rng(5)
+    places = [np.sort(rng.choice(2048, 512, replace=False)) for _ in range(40)]
+    k = sv.SLICE_BLOCK + 3000
+    unions = []
+    for i in range(k):
+        u = places[i % 40].copy()
+        moved = rng.random(512) < 0.1
+        u[moved] = rng.integers(0, 2048, int(moved.sum()))
+        unions.append(np.unique(u).astype(np.uint32))
+    svc = sv.SpatialViewCells()
+    svc.load_state_dict({"params": [384, 3, 470, 3, 65536], "unions": unions, "start": np.arange(k) * 4,
+                         "end": np.arange(k) * 4 + 3, "template": np.arange(k), "n_templates": k,
+                         "current_template": k - 1, "t": 4 * k})
+    assert svc._n_dense - 1 > 1900
+    limits = [2, 63, 64, 65, 4097, sv.SLICE_BLOCK - 1, sv.SLICE_BLOCK, sv.SLICE_BLOCK + 1, k - 3]
+    for q in range(12):
+        y = svc._validate(np.union1d(places[q * 3 % 40][rng.random(512) > 0.05], rng.choice(65536, 3)))
+        for limit in limits:
+            svc.sliced = True
+            got = svc._top2_bounded(y, limit)
+            assert svc.last_path == "sliced"
+            assert got == svc._top2_exhaustive(y, limit), (q, limit)
+        svc.sliced = None  # the cost model picks the bit-sliced count for these real-shaped SDRs
+        assert svc._top2_bounded(y, k - 3) == svc._top2_exhaustive(y, k - 3) and svc.last_path == "sliced"
+    # SDRs spread over all 65536 cells keep short lists, no rows: the posting-list search
+    sparse = sv.SpatialViewCells()
+    for _ in range(300):
+        sparse.compute(rng.choice(65536, 512, replace=False))
+    assert sparse._n_dense == 1 and sparse.last_path == "postings"

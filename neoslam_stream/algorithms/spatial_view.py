@@ -224,6 +224,27 @@ def _offer(j, s, b1, s1, b2, s2):  # pragma: no cover - compiled
 
 
 @njit(cache=True)
+def _top2_counted(y, ptr, post, f_pool, f_next, f_head, f_tail, f_fill, pool, nxt, head, tail, fill, limit,
+                  counts, verified):  # pragma: no cover - compiled
+    """:func:`_top2`'s top two from every posting of y_t counted into ``counts`` (zero on entry,
+    sized for every interval; zeroed again on exit)."""
+    _scores_csr(ptr, post, y, counts)
+    _scores(f_pool, f_next, f_head, f_tail, f_fill, y, counts)
+    _scores(pool, nxt, head, tail, fill, y, counts)
+    big = limit + 1
+    b1, s1, b2, s2 = big, -1, big, -1
+    for j in range(limit):
+        v = counts[j]
+        if v > s2:  # strictly: on ties the lower index, met first, stays
+            if v > s1:
+                b1, s1, b2, s2 = j, v, b1, s1
+            else:
+                b2, s2 = j, v
+    counts[:] = 0
+    return b1, s1, b2, s2, verified
+
+
+@njit(cache=True)
 def _top2(y, lengths, ptr, post, f_pool, f_next, f_head, f_tail, f_fill, pool, nxt, head, tail, fill,
           u_ptr, u_cells, limit, hints, inq, partial, touched, bucket):  # pragma: no cover - compiled
     """The best and runner-up candidates k < limit by s_k = |Y_k & y_t| (ties: lowest index),
@@ -253,6 +274,18 @@ def _top2(y, lengths, ptr, post, f_pool, f_next, f_head, f_tail, f_fill, pool, n
     # 2. rarest lists first. After e lists an interval met in none of them scores at most n - e;
     # once n - e < s2 it cannot enter the top two (a tie needs s = s2), so candidate generation stops.
     order = np.argsort(lengths, kind="mergesort")
+    # the n - s2 + 1 rarest lists must be read whatever happens; when they are most of the postings
+    # (s2 small: SDRs unlike every interval, e.g. random ones) bounds cannot pay for their
+    # bookkeeping: count every posting instead (plain increments, 4x faster there)
+    must = 0
+    for q in range(min(n, max(n - s2 + 1, 0))):
+        must += lengths[order[q]]
+    if 2 * must > lengths.sum():
+        for c in y:
+            inq[c] = 0
+        b1, s1, b2, s2, verified = _top2_counted(y, ptr, post, f_pool, f_next, f_head, f_tail, f_fill, pool, nxt,
+                                                 head, tail, fill, limit, partial, verified)
+        return b1, s1, b2, s2, lengths.sum(), verified
     avg_union = u_ptr[limit] / limit  # cost of one exact score, in cells read
     n_touched = 0
     read = 0
@@ -343,6 +376,216 @@ def _top2(y, lengths, ptr, post, f_pool, f_next, f_head, f_tail, f_fill, pool, n
     return b1, s1, b2, s2, read, verified
 
 
+# ----------------------------------------------------------------------- bit-sliced part (#16)
+#: words per block of the dense rows (64 intervals a word): one block of the ten counter planes
+#: (20 kB) stays in L1 while the query's rows stream through it, and each row's 2 kB run is long
+#: enough for the hardware prefetcher (64-word blocks were 1.6x slower with a cold cache)
+SLICE_WORDS = 256
+SLICE_BLOCK = 64 * SLICE_WORDS
+#: a cell gets a dense row (one bit per interval) once its posting list holds this many intervals
+#: and at least 1/32 of them: from then on the row is no larger than the list it mirrors
+DENSE_MIN = 1024
+#: counter slices: counts up to 1023, so at most 1016 dense rows per query (8-row groups)
+SLICES = 10
+_ALL = np.uint64(0xFFFFFFFFFFFFFFFF)
+_ONE = np.uint64(1)
+
+
+@njit(cache=True, inline="always")
+def _csa(a, b, c):  # pragma: no cover - compiled
+    """Carry-save adder on 64 lanes at once: per bit position, a + b + c = 2 * carry + sum."""
+    u = a ^ b
+    return (a & b) | (u & c), u ^ c
+
+
+@njit(cache=True)
+def _set_dense_bits(dense, row_of, bits, interval):  # pragma: no cover - compiled
+    """Mark ``interval`` in the dense row of every cell of ``bits`` that has one."""
+    blk = interval // SLICE_BLOCK
+    w = (interval >> 6) % SLICE_WORDS
+    m = _ONE << np.uint64(interval & 63)
+    for b in bits:
+        r = row_of[b]
+        if r >= 0:
+            dense[blk, r, w] |= m
+
+
+@njit(cache=True)
+def _fill_dense_row(b, row, dense, ptr, post, f_pool, f_next, f_head, f_tail, f_fill, pool, nxt, head, tail,
+                    fill):  # pragma: no cover - compiled
+    """A new dense row for cell b from its posting list (all three parts)."""
+    for i in range(ptr[b], ptr[b + 1]):
+        j = post[i]
+        dense[j // SLICE_BLOCK, row, (j >> 6) % SLICE_WORDS] |= _ONE << np.uint64(j & 63)
+    _fill_dense_linked(b, row, dense, f_pool, f_next, f_head, f_tail, f_fill)
+    _fill_dense_linked(b, row, dense, pool, nxt, head, tail, fill)
+
+
+@njit(cache=True, inline="always")
+def _fill_dense_linked(b, row, dense, pool, nxt, head, tail, fill):  # pragma: no cover - compiled
+    blk = head[b]
+    while blk != -1:
+        n = fill[b] if blk == tail[b] else BLOCK
+        for i in range(n):
+            j = pool[blk, i]
+            dense[j // SLICE_BLOCK, row, (j >> 6) % SLICE_WORDS] |= _ONE << np.uint64(j & 63)
+        blk = nxt[blk]
+
+
+@njit(cache=True)
+def _top2_sliced(y, rows, sparse, dense, ptr, post, f_pool, f_next, f_head, f_tail, f_fill, pool, nxt, head,
+                 tail, fill, u_ptr, u_cells, limit, hints, inq, partial, touched):  # pragma: no cover - compiled
+    """The top two of :func:`_top2` (same order, same ties) from bit-sliced counts.
+
+    Every s_k, k < limit, is counted: ``rows`` are the dense rows of y_t's cells (padded to a
+    multiple of 8 with the all-zero row 0), added 8 at a time by a carry-save adder tree into
+    SLICES bit planes per block of SLICE_BLOCK intervals (64 intervals per machine word, so one
+    word operation counts 64 intervals; the loops vectorise). The cells in ``sparse`` (no dense
+    row) are counted from their posting lists into ``partial``. Interval k is looked at only if
+    its block count can reach the runner-up: count_k >= s2 - max(partial in k's word), a
+    bit-sliced comparison per word; the exact score of a lane is its planes plus partial_k.
+    Scratch ``inq`` and ``partial`` are zero on entry and on exit. Returns (b1, s1, b2, s2,
+    sparse postings read, intervals looked at).
+    """
+    big = limit + 1
+    b1, s1, b2, s2 = big, -1, big, -1
+    for c in y:
+        inq[c] = 1
+    for h in hints:  # a runner-up score from the likely winners: fewer intervals to look at
+        if 0 <= h < limit:
+            b1, s1, b2, s2 = _offer(h, _exact(h, u_ptr, u_cells, inq), b1, s1, b2, s2)
+    for c in y:
+        inq[c] = 0
+    n_touched = 0
+    read = 0
+    for b in sparse:
+        read += (ptr[b + 1] - ptr[b])
+        n_touched = _walk_csr(b, ptr, post, limit, partial, touched, n_touched)
+        n_touched = _walk_linked(b, f_pool, f_next, f_head, f_tail, f_fill, limit, partial, touched, n_touched)
+        n_touched = _walk_linked(b, pool, nxt, head, tail, fill, limit, partial, touched, n_touched)
+    n_words = (limit + 63) >> 6
+    wmax = np.zeros(n_words, np.int64)
+    for t in range(n_touched):
+        j = touched[t]
+        if partial[j] > wmax[j >> 6]:
+            wmax[j >> 6] = partial[j]
+    # the counter planes are allocated here, not passed in: the compiler then knows they alias no
+    # row, which is what lets it vectorise the adder loop
+    c0 = np.zeros(SLICE_WORDS, np.uint64)
+    c1 = np.zeros(SLICE_WORDS, np.uint64)
+    c2 = np.zeros(SLICE_WORDS, np.uint64)
+    c3 = np.zeros(SLICE_WORDS, np.uint64)
+    c4 = np.zeros(SLICE_WORDS, np.uint64)
+    c5 = np.zeros(SLICE_WORDS, np.uint64)
+    c6 = np.zeros(SLICE_WORDS, np.uint64)
+    c7 = np.zeros(SLICE_WORDS, np.uint64)
+    c8 = np.zeros(SLICE_WORDS, np.uint64)
+    c9 = np.zeros(SLICE_WORDS, np.uint64)
+    planes = np.zeros((SLICES, SLICE_WORDS), np.uint64)
+    looked = 0
+    n_rows = rows.shape[0]
+    for blk in range((limit + SLICE_BLOCK - 1) // SLICE_BLOCK):
+        nw = min(SLICE_WORDS, n_words - blk * SLICE_WORDS)  # words of this block below the limit
+        for w in range(nw):
+            c0[w] = 0
+            c1[w] = 0
+            c2[w] = 0
+            c3[w] = 0
+            c4[w] = 0
+            c5[w] = 0
+            c6[w] = 0
+            c7[w] = 0
+            c8[w] = 0
+            c9[w] = 0
+        dblk = dense[blk]
+        for g in range(0, n_rows, 8):
+            d0 = dblk[rows[g]]
+            d1 = dblk[rows[g + 1]]
+            d2 = dblk[rows[g + 2]]
+            d3 = dblk[rows[g + 3]]
+            d4 = dblk[rows[g + 4]]
+            d5 = dblk[rows[g + 5]]
+            d6 = dblk[rows[g + 6]]
+            d7 = dblk[rows[g + 7]]
+            for w in range(nw):
+                # 8 rows into planes 0-2 (ones, twos, fours) and a carry of weight 8
+                ones = c0[w]
+                twos = c1[w]
+                fours = c2[w]
+                twos_a, ones = _csa(ones, d0[w], d1[w])
+                twos_b, ones = _csa(ones, d2[w], d3[w])
+                fours_a, twos = _csa(twos, twos_a, twos_b)
+                twos_a, ones = _csa(ones, d4[w], d5[w])
+                twos_b, ones = _csa(ones, d6[w], d7[w])
+                fours_b, twos = _csa(twos, twos_a, twos_b)
+                carry, fours = _csa(fours, fours_a, fours_b)
+                c0[w] = ones
+                c1[w] = twos
+                c2[w] = fours
+                x = c3[w]
+                c3[w] = x ^ carry
+                carry = x & carry
+                x = c4[w]
+                c4[w] = x ^ carry
+                carry = x & carry
+                x = c5[w]
+                c5[w] = x ^ carry
+                carry = x & carry
+                x = c6[w]
+                c6[w] = x ^ carry
+                carry = x & carry
+                x = c7[w]
+                c7[w] = x ^ carry
+                carry = x & carry
+                x = c8[w]
+                c8[w] = x ^ carry
+                carry = x & carry
+                c9[w] ^= carry
+        planes[0] = c0
+        planes[1] = c1
+        planes[2] = c2
+        planes[3] = c3
+        planes[4] = c4
+        planes[5] = c5
+        planes[6] = c6
+        planes[7] = c7
+        planes[8] = c8
+        planes[9] = c9
+        for w in range(nw):
+            gw = blk * SLICE_WORDS + w
+            thr = s2 - wmax[gw]
+            if thr <= 0:
+                ge = _ALL
+            elif thr >= 1 << SLICES:
+                ge = np.uint64(0)
+            else:  # lanes whose count >= thr, plane by plane from the top
+                gt = np.uint64(0)
+                eq = _ALL
+                for s in range(SLICES - 1, -1, -1):
+                    if (thr >> s) & 1:
+                        eq &= planes[s, w]
+                    else:
+                        gt |= eq & planes[s, w]
+                        eq &= ~planes[s, w]
+                ge = gt | eq
+            if gw == n_words - 1 and (limit & 63):
+                ge &= (_ONE << np.uint64(limit & 63)) - _ONE
+            lane = 0
+            while ge != 0:
+                if ge & _ONE:
+                    j = (gw << 6) + lane
+                    v = np.int64(partial[j])
+                    for s in range(SLICES):
+                        v += np.int64((planes[s, w] >> np.uint64(lane)) & _ONE) << s
+                    b1, s1, b2, s2 = _offer(j, v, b1, s1, b2, s2)
+                    looked += 1
+                ge >>= _ONE
+                lane += 1
+    for t in range(n_touched):
+        partial[touched[t]] = 0
+    return b1, s1, b2, s2, read, looked
+
+
 #: the linked part is merged into the CSR part once it holds this many postings and more than a
 #: quarter of the CSR part (512 intervals of 512 cells: no compaction at all for small maps)
 COMPACT_MIN = 262144
@@ -374,6 +617,12 @@ class SpatialViewCells:
         #: postings read and unions verified by the last frame's bounded search (bench figures)
         self.last_search = (0, 0)
         self._hints = np.full(6, -1, dtype=np.int64)
+        #: None: each query takes the cheaper of the bounded posting-list search and the bit-sliced
+        #: count (when y_t's cells have dense rows); True / False: always / never bit-sliced.
+        #: Both give the exhaustive top two (tests/test_spatial_view.py).
+        self.sliced: bool | None = None
+        #: which search the last frame used: "postings" or "sliced"
+        self.last_path = "postings"
         self.sequence = SequenceFilter(cfg.sequence)
 
     def _init_storage(self, blocks: int) -> None:
@@ -391,6 +640,13 @@ class SpatialViewCells:
         self._touched = np.zeros(1024, dtype=np.int32)
         n = self.sdr_size
         self._inq = np.zeros(n, dtype=np.uint8)
+        # dense rows (bit-sliced part): row r of cell b = one bit per interval, in blocks of
+        # SLICE_BLOCK intervals, block-major so that one block of every row is contiguous. Row 0
+        # stays zero (it pads the query's rows to groups of 8); cells get rows when their lists grow
+        # long (DENSE_MIN), which on real SDRs is most of them (docs/performance.md).
+        self._row_of = np.full(n, -1, dtype=np.int32)
+        self._dense = np.zeros((0, 1, SLICE_WORDS), dtype=np.uint64)
+        self._n_dense = 1
         # an empty linked part stands for "no merge in progress" in the bounded search
         self._no_linked = (np.zeros((1, BLOCK), np.int32), np.full(1, -1, np.int32), np.full(n, -1, np.int32),
                            np.full(n, -1, np.int32), np.zeros(n, np.int32))
@@ -442,10 +698,44 @@ class SpatialViewCells:
                                           self._n_blocks, bits, interval)
         self._linked_postings += len(bits)
         self._count[bits] += 1  # bits are unique
+        self._update_dense(bits, interval)
         if self._frozen is not None and self._frozen[1].done():
             self._finish_background_merge()
         if self._frozen is None and self._linked_postings >= max(COMPACT_MIN, self._post.shape[0] // 4):
             self._start_background_merge()
+
+    def _update_dense(self, bits: np.ndarray, interval: int) -> None:
+        """Keep the dense rows equal to the posting lists: mark ``interval`` in the rows of its new
+        cells, and give a row to every cell whose list became long (DENSE_MIN, >= 1/32 of the
+        intervals), filled from that list."""
+        row = self._row_of[bits]
+        if self._n_dense > 1:
+            self._dense_capacity(interval, 0)
+            _set_dense_bits(self._dense, self._row_of, bits, interval)
+        fresh = bits[row < 0]
+        cnt = self._count[fresh]
+        promote = fresh[(cnt >= DENSE_MIN) & (cnt * 32 >= interval + 1)]
+        if not len(promote):
+            return
+        self._dense_capacity(interval, len(promote))
+        frozen = self._frozen[0] if self._frozen is not None else self._no_linked
+        for b in promote:
+            r = self._n_dense
+            self._n_dense += 1
+            self._row_of[b] = r
+            _fill_dense_row(int(b), r, self._dense, self._ptr, self._post, *frozen, *self._linked_arrays())
+
+    def _dense_capacity(self, interval: int, new_rows: int) -> None:
+        """Room in the dense rows for interval ``interval`` and ``new_rows`` more rows (doubling)."""
+        blocks, rows, _ = self._dense.shape
+        need_blocks = interval // SLICE_BLOCK + 1
+        need_rows = self._n_dense + new_rows
+        if need_blocks <= blocks and need_rows <= rows:
+            return
+        grown = np.zeros((max(need_blocks, 2 * blocks, 4) if need_blocks > blocks else blocks,
+                          max(need_rows, 2 * rows, 64) if need_rows > rows else rows, SLICE_WORDS), dtype=np.uint64)
+        grown[:blocks, :rows] = self._dense
+        self._dense = grown
 
     def _linked_arrays(self) -> tuple[np.ndarray, ...]:
         return self._pool, self._next, self._head, self._tail, self._fill
@@ -580,10 +870,34 @@ class SpatialViewCells:
         h = self._hints
         prev = (int(h[0]), int(h[2]))
         h[:] = (prev[0], prev[0] + 1, prev[1], prev[1] + 1, limit - 1, limit - 2)
-        b1, s1, b2, s2, read, verified = _top2(
-            y, self._count[y], self._ptr, self._post, *frozen, self._pool, self._next, self._head, self._tail,
-            self._fill, self._u_ptr, self._u_cells, limit, h, self._inq, self._partial, self._touched,
-            np.zeros(y.shape[0] + 2, np.int64))
+        lengths = self._count[y]
+        rows = self._row_of[y]
+        dense = rows > 0
+        n_dense = int(dense.sum())
+        sliced = self.sliced
+        if limit < 2 or n_dense > (1 << SLICES) - 8:
+            sliced = False
+        elif sliced is None:
+            # cost model measured on this machine (docs/performance.md): ~0.6 ns per row-word of the
+            # bit-sliced count, ~2 ns per sparse posting, ~0.2 ns per posting the bounded search
+            # could read (it reads ~5 % of them, at ~4 ns each)
+            words = (n_dense + 7) // 8 * 8 * ((limit + 63) // 64)
+            sparse_postings = int(lengths[~dense].sum())
+            sliced = n_dense > 0 and 3 * words + 10 * sparse_postings < int(lengths.sum())
+        if sliced:
+            self._dense_capacity(self.n_intervals - 1, 0)  # blocks to read even without any dense row
+            r = np.sort(rows[dense]).astype(np.int64)
+            r = np.concatenate([r, np.zeros(-len(r) % 8, np.int64)])
+            b1, s1, b2, s2, read, verified = _top2_sliced(
+                y, r, y[~dense], self._dense, self._ptr, self._post, *frozen, self._pool, self._next, self._head,
+                self._tail, self._fill, self._u_ptr, self._u_cells, limit, h, self._inq, self._partial,
+                self._touched)
+        else:
+            b1, s1, b2, s2, read, verified = _top2(
+                y, lengths, self._ptr, self._post, *frozen, self._pool, self._next, self._head, self._tail,
+                self._fill, self._u_ptr, self._u_cells, limit, h, self._inq, self._partial, self._touched,
+                np.zeros(y.shape[0] + 2, np.int64))
+        self.last_path = "sliced" if sliced else "postings"
         self.last_search = (int(read), int(verified))
         h[0], h[2] = b1, b2
         return int(b1), int(s1), int(b2), int(s2)

@@ -410,6 +410,12 @@ def _csa(a, b, c):  # pragma: no cover - compiled
     return (a & b) | (u & c), u ^ c
 
 
+@njit(cache=True, inline="always")
+def _half_add(a, b):  # pragma: no cover - compiled
+    """(sum, carry) of a + b per bit position."""
+    return a ^ b, a & b
+
+
 @njit(cache=True)
 def _set_dense_bits(dense, row_of, bits, interval):  # pragma: no cover - compiled
     """Mark ``interval`` in the dense row of every cell of ``bits`` that has one."""
@@ -534,24 +540,12 @@ def _top2_sliced(y, rows, sparse, dense, ptr, post, f_pool, f_next, f_head, f_ta
                 c0[w] = ones
                 c1[w] = twos
                 c2[w] = fours
-                x = c3[w]
-                c3[w] = x ^ carry
-                carry = x & carry
-                x = c4[w]
-                c4[w] = x ^ carry
-                carry = x & carry
-                x = c5[w]
-                c5[w] = x ^ carry
-                carry = x & carry
-                x = c6[w]
-                c6[w] = x ^ carry
-                carry = x & carry
-                x = c7[w]
-                c7[w] = x ^ carry
-                carry = x & carry
-                x = c8[w]
-                c8[w] = x ^ carry
-                carry = x & carry
+                c3[w], carry = _half_add(c3[w], carry)  # the carry ripples up the higher planes
+                c4[w], carry = _half_add(c4[w], carry)
+                c5[w], carry = _half_add(c5[w], carry)
+                c6[w], carry = _half_add(c6[w], carry)
+                c7[w], carry = _half_add(c7[w], carry)
+                c8[w], carry = _half_add(c8[w], carry)
                 c9[w] ^= carry
         planes[0] = c0
         planes[1] = c1

@@ -463,7 +463,7 @@ def _top2_sliced(y, rows, sparse, dense, ptr, post, f_pool, f_next, f_head, f_ta
     its block count can reach the runner-up: count_k >= s2 - max(partial in k's word), a
     bit-sliced comparison per word; the exact score of a lane is its planes plus partial_k.
     Scratch ``inq`` and ``partial`` are zero on entry and on exit. Returns (b1, s1, b2, s2,
-    sparse postings read, intervals looked at).
+    intervals looked at).
     """
     big = limit + 1
     b1, s1, b2, s2 = big, -1, big, -1
@@ -475,9 +475,7 @@ def _top2_sliced(y, rows, sparse, dense, ptr, post, f_pool, f_next, f_head, f_ta
     for c in y:
         inq[c] = 0
     n_touched = 0
-    read = 0
     for b in sparse:
-        read += (ptr[b + 1] - ptr[b])
         n_touched = _walk_csr(b, ptr, post, limit, partial, touched, n_touched)
         n_touched = _walk_linked(b, f_pool, f_next, f_head, f_tail, f_fill, limit, partial, touched, n_touched)
         n_touched = _walk_linked(b, pool, nxt, head, tail, fill, limit, partial, touched, n_touched)
@@ -589,7 +587,7 @@ def _top2_sliced(y, rows, sparse, dense, ptr, post, f_pool, f_next, f_head, f_ta
                 lane += 1
     for t in range(n_touched):
         partial[touched[t]] = 0
-    return b1, s1, b2, s2, read, looked
+    return b1, s1, b2, s2, looked
 
 
 #: the linked part is merged into the CSR part once it holds this many postings and more than a
@@ -629,6 +627,8 @@ class SpatialViewCells:
         self.sliced: bool | None = None
         #: which search the last frame used: "postings" or "sliced"
         self.last_path = "postings"
+        #: posting-list length from which a cell gets a dense row (with >= 1/32 of the intervals)
+        self.dense_min = DENSE_MIN
         self.sequence = SequenceFilter(cfg.sequence)
 
     def _init_storage(self, blocks: int) -> None:
@@ -720,7 +720,7 @@ class SpatialViewCells:
             _set_dense_bits(self._dense, self._row_of, bits, interval)
         fresh = bits[row < 0]
         cnt = self._count[fresh]
-        promote = fresh[(cnt >= DENSE_MIN) & (cnt * 32 >= interval + 1)]
+        promote = fresh[(cnt >= self.dense_min) & (cnt * 32 >= interval + 1)]
         if not len(promote):
             return
         self._dense_capacity(interval, len(promote))
@@ -894,7 +894,8 @@ class SpatialViewCells:
             self._dense_capacity(self.n_intervals - 1, 0)  # blocks to read even without any dense row
             r = np.sort(rows[dense]).astype(np.int64)
             r = np.concatenate([r, np.zeros(-len(r) % 8, np.int64)])
-            b1, s1, b2, s2, read, verified = _top2_sliced(
+            read = int(lengths[~dense].sum())  # postings of the cells without a dense row
+            b1, s1, b2, s2, verified = _top2_sliced(
                 y, r, y[~dense], self._dense, self._ptr, self._post, *frozen, self._pool, self._next, self._head,
                 self._tail, self._fill, self._u_ptr, self._u_cells, limit, h, self._inq, self._partial,
                 self._touched)
@@ -918,6 +919,12 @@ class SpatialViewCells:
             warm.compute((np.arange(64, dtype=np.uint32) + 64 * i) % n)
         warm.compact()
         warm.compute(np.arange(64, dtype=np.uint32))
+        # the bit-sliced count and its dense rows too: on real SDRs they start after thousands of
+        # intervals, where compiling them would stall a live frame
+        warm.dense_min = 1
+        warm.sliced = True
+        for i in range(2):
+            warm.compute(np.arange(64, dtype=np.uint32) + 32 * i)
 
     # ---------------------------------------------------------------- state
     def state_dict(self) -> dict[str, Any]:

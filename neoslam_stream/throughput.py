@@ -130,7 +130,8 @@ def rate_sweep(config: str | None, rates: list[float], duration: float, topologi
         row = summarise(res.report, topo, rate, duration)
         # what B computed and how many waiting frames a stage may take at once (docs/performance.md)
         row.update({"projection": cfg.projector.projection, "matrix_dtype": cfg.projector.matrix_dtype,
-                    "feature_bits": cfg.projector.feature_bits, "max_batch": cfg.run.max_batch})
+                    "feature_bits": cfg.projector.feature_bits, "max_batch": cfg.run.max_batch,
+                    "nice": dict(cfg.run.nice), "cpus": dict(cfg.run.cpus)})
         runs.append(row)
         if progress:
             print(f"      processed {row['frames_processed']} of {row['frames_in']}, loss {100 * row['loss']:.2f} %, "

@@ -19,6 +19,16 @@ def _rates(text: str) -> list[float]:
     return rates
 
 
+def _json_object(text: str) -> dict[str, Any]:
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise argparse.ArgumentTypeError(f"not JSON ({exc}): {text!r}") from None
+    if not isinstance(value, dict):
+        raise argparse.ArgumentTypeError(f"must be a JSON object such as '{{\"A\": 1}}', got {text!r}")
+    return value
+
+
 def cmd_bench_throughput(args: argparse.Namespace) -> int:
     from ..config import ConfigError
     from ..throughput import run_bench
@@ -34,7 +44,11 @@ def cmd_bench_throughput(args: argparse.Namespace) -> int:
     if args.image_capacity:
         overrides["bus"] = {"capacity": {"image": args.image_capacity}}
     if args.threads:
-        overrides["run"] = {"threads": json.loads(args.threads)}
+        overrides["run"] = {"threads": args.threads}
+    if args.nice:
+        overrides.setdefault("run", {})["nice"] = args.nice
+    if args.cpus:
+        overrides.setdefault("run", {})["cpus"] = args.cpus
     if args.max_batch:
         overrides.setdefault("run", {})["max_batch"] = args.max_batch
     try:
@@ -83,7 +97,9 @@ def register(sub: argparse._SubParsersAction, bench_sub: argparse._SubParsersAct
                         "7 bits (torch's quantised int8 kernels; projector.feature_bits)")
     p.add_argument("--max-batch", type=int, help="override run.max_batch (1: every stage takes one frame at a time)")
     p.add_argument("--image-capacity", type=int, help="override the image ring capacity (bus.capacity.image)")
-    p.add_argument("--threads", help='per-stage thread budget as JSON, e.g. \'{"A": 2}\'')
+    p.add_argument("--threads", type=_json_object, help='per-stage thread budget as JSON, e.g. \'{"A": 2}\'')
+    p.add_argument("--nice", type=_json_object, help='per-process niceness as JSON (run.nice), e.g. \'{"C": 10, "monitor": 10}\'')
+    p.add_argument("--cpus", type=_json_object, help='per-process CPUs as JSON (run.cpus), e.g. \'{"A": [0], "B": [1]}\'')
     p.add_argument("--scaling", type=int, metavar="FRAMES", help="also run the lossless scaling curve")
     p.add_argument("--scaling-step", type=int, default=1000, help="frames between two points of the curve")
     p.add_argument("--out", default="bench/results/throughput", help="output folder")

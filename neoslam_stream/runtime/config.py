@@ -109,6 +109,11 @@ class RunSection(Strict):
     seed: int = 42
     #: threads per stage (torch/BLAS/numba); stages not named get 1
     threads: dict[str, int] = Field(default_factory=dict)
+    #: scheduling niceness per process, 0-19 (higher: yields the CPU to the others; no privilege
+    #: needed): keys are stage names as in ``threads``, "monolithic", "source" or "monitor"
+    nice: dict[str, int] = Field(default_factory=dict)
+    #: CPUs a process may run on (sched_setaffinity), keys as for ``nice``; not named: any CPU
+    cpus: dict[str, list[int]] = Field(default_factory=dict)
     live: bool = True
     #: real-time mode: after the source ends, let frames in flight finish for this long
     drain_s: float = Field(2.0, ge=0)
@@ -123,6 +128,23 @@ class RunSection(Strict):
     stages: list[str] | None = None
     #: the run id (key expressions neoslam/<run_id>/...): the parts of a split run must share it
     run_id: str | None = Field(None, pattern=r"^[A-Za-z0-9_-]{1,64}$")
+
+
+    @field_validator("nice")
+    @classmethod
+    def _niceness(cls, v: dict[str, int]) -> dict[str, int]:
+        bad = {k: n for k, n in v.items() if not 0 <= n <= 19}
+        if bad:
+            raise ValueError(f"niceness must lie in 0..19 (raising priority needs privileges): {bad}")
+        return v
+
+    @field_validator("cpus")
+    @classmethod
+    def _cpu_sets(cls, v: dict[str, list[int]]) -> dict[str, list[int]]:
+        bad = {k: c for k, c in v.items() if not c or any(i < 0 for i in c)}
+        if bad:
+            raise ValueError(f"cpus must be non-empty lists of CPU numbers >= 0: {bad}")
+        return v
 
 
 class RunConfig(Strict):

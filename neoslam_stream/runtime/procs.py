@@ -84,24 +84,56 @@ def follow_parent(parent_pid: int | None, grace_s: float = STOP_GRACE_S) -> None
     threading.Thread(target=_watch, name="parent-watchdog", daemon=True).start()
 
 
-def worker_entry(spec: Any, parent_pid: int | None = None) -> None:
+def apply_scheduling(name: str, nice: int = 0, cpus: list[int] | None = None) -> list[str]:
+    """Name this process ``neoslam-<name>`` (top, ps -o comm), raise its niceness by ``nice`` and
+    restrict it to ``cpus`` (run.nice, run.cpus). A setting the system refuses (a CPU this machine
+    lacks) is skipped; returns one line per refusal, which the caller logs."""
+    problems: list[str] = []
+    try:
+        with open("/proc/self/comm", "w") as fh:  # linux; 15 characters are kept
+            fh.write(f"neoslam-{name}"[:15])
+    except OSError:
+        pass
+    if nice:
+        try:
+            os.nice(int(nice))
+        except OSError as exc:
+            problems.append(f"{name}: niceness +{nice} refused: {exc}")
+    if cpus:
+        try:
+            os.sched_setaffinity(0, set(cpus))
+        except (OSError, ValueError, AttributeError) as exc:
+            problems.append(f"{name}: CPUs {sorted(cpus)} refused (this machine has "
+                            f"{os.cpu_count()}): {exc}; running on any CPU")
+    return problems
+
+
+def _scheduled(name: str, sched: dict[str, Any] | None) -> None:
+    for line in apply_scheduling(name, **(sched or {})):
+        print(f"warning: {line}", file=sys.stderr, flush=True)
+
+
+def worker_entry(spec: Any, parent_pid: int | None = None, sched: dict[str, Any] | None = None) -> None:
     set_thread_budget(spec.threads)
+    _scheduled(spec.name, sched)
     follow_parent(parent_pid)
     from .worker import run_worker
 
     run_worker(spec)
 
 
-def source_entry(spec: Any, parent_pid: int | None = None) -> None:
+def source_entry(spec: Any, parent_pid: int | None = None, sched: dict[str, Any] | None = None) -> None:
     set_thread_budget(1)
+    _scheduled("source", sched)
     follow_parent(parent_pid)
     from .source_runner import run_source
 
     run_source(spec)
 
 
-def monitor_entry(spec: Any, parent_pid: int | None = None) -> None:
+def monitor_entry(spec: Any, parent_pid: int | None = None, sched: dict[str, Any] | None = None) -> None:
     set_thread_budget(1)
+    _scheduled("monitor", sched)
     follow_parent(parent_pid)
     from .monitor import run_monitor
 

@@ -224,9 +224,22 @@ class Supervisor:
                            live=self.cfg.run.live, control_token=self.control_token)
 
     # ------------------------------------------------------------------ processes
+    def scheduling(self, name: str) -> dict[str, Any]:
+        """run.nice and run.cpus of process ``name`` (a worker, "source" or "monitor"): its own key,
+        else those of the stages it hosts (the lowest niceness, the union of their CPUs; a stage not
+        named counts as niceness 0 on any CPU)."""
+        run = self.cfg.run
+        keys = [name] if name in run.nice or name in run.cpus or name not in self.groups \
+            else [s.name for s in self.groups[name]]
+        cpus = sorted({c for k in keys for c in run.cpus.get(k, [])})
+        # a stage not named runs at niceness 0 and on any CPU, so its process does too
+        any_cpu = any(k not in run.cpus for k in keys)
+        return {"nice": min(run.nice.get(k, 0) for k in keys), "cpus": [] if any_cpu else cpus}
+
     def _start(self, name: str, target: Any, spec: Any) -> None:
         # the supervisor's pid: the child stops when this process dies (procs.follow_parent)
-        p = self.ctx.Process(target=target, args=(spec, os.getpid()), name=f"neoslam-{name}", daemon=False)
+        p = self.ctx.Process(target=target, args=(spec, os.getpid(), self.scheduling(name)), name=f"neoslam-{name}",
+                             daemon=False)
         p.start()
         self.procs[name] = p
 

@@ -1,0 +1,66 @@
+"""run.nice and run.cpus: each process's niceness and CPUs, and its name in top/ps."""
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from neoslam_stream import load_config
+from neoslam_stream.config import ConfigError
+
+
+def _in_child(name, nice, cpus):
+    code = ("import json, os; from neoslam_stream.runtime.procs import apply_scheduling; "
+            f"before = os.nice(0); problems = apply_scheduling({name!r}, {nice}, {cpus!r}); "
+            "print(json.dumps({'comm': open('/proc/self/comm').read().strip(), 'raised': os.nice(0) - before, "
+            "'cpus': sorted(os.sched_getaffinity(0)), 'problems': problems}))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120)
+    return json.loads(out.stdout)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc and sched_setaffinity are Linux's")
+def test_a_process_gets_its_name_niceness_and_cpus():
+    cpu = min(os.sched_getaffinity(0))
+    got = _in_child("A", 5, [cpu])
+    assert got == {"comm": "neoslam-A", "raised": 5, "cpus": [cpu], "problems": []}
+    # a CPU this machine lacks: the process runs where it may, and says why
+    everywhere = sorted(os.sched_getaffinity(0))
+    got = _in_child("experience_map", 0, [4095])
+    assert got["comm"] == "neoslam-experie" and got["raised"] == 0 and got["cpus"] == everywhere
+    assert len(got["problems"]) == 1 and "CPUs [4095] refused" in got["problems"][0]
+
+
+@pytest.mark.parametrize("run,message", [
+    ({"nice": {"A": -1}}, "niceness must lie in 0..19"),
+    ({"nice": {"C": 20}}, "niceness must lie in 0..19"),
+    ({"cpus": {"A": []}}, "non-empty lists of CPU numbers"),
+    ({"cpus": {"A": [-1]}}, "non-empty lists of CPU numbers"),
+])
+def test_bad_scheduling_settings_are_refused_by_the_config(run, message):
+    with pytest.raises(ConfigError, match=message):
+        load_config("default", {"run": run})
+
+
+def test_the_supervisor_hands_each_process_its_settings(tmp_path):
+    from neoslam_stream.nodes.pipelines import build_plan
+    from neoslam_stream.runtime.topology import Supervisor
+
+    run = {"nice": {"C": 10, "D": 4, "monitor": 15}, "cpus": {"A": [0], "C": [1], "D": [0]}}
+    cfg = load_config("default", {"run": run})
+    sup = Supervisor(cfg, build_plan(cfg), tmp_path / "pipeline")
+    assert sup.scheduling("A") == {"nice": 0, "cpus": [0]}
+    assert sup.scheduling("C") == {"nice": 10, "cpus": [1]}
+    assert sup.scheduling("B") == {"nice": 0, "cpus": []}
+    assert sup.scheduling("monitor") == {"nice": 15, "cpus": []}
+    assert sup.scheduling("source") == {"nice": 0, "cpus": []}
+    # one process for every stage: the lowest niceness of its stages (0 for those not named), the
+    # union of their CPUs (any CPU when one of them is not restricted)
+    cfg = load_config("default", {"run": {**run, "topology": "monolithic"}})
+    sup = Supervisor(cfg, build_plan(cfg), tmp_path / "monolithic")
+    assert sup.scheduling("monolithic") == {"nice": 0, "cpus": []}
+    cfg = load_config("default", {"run": {"topology": "monolithic", "cpus": {"monolithic": [1]}}})
+    assert Supervisor(cfg, build_plan(cfg), tmp_path / "m1").scheduling("monolithic") == {"nice": 0, "cpus": [1]}
+    cfg = load_config("default", {"run": {**run, "topology": "monolithic", "nice": {"monolithic": 3}}})
+    assert Supervisor(cfg, build_plan(cfg), tmp_path / "m2").scheduling("monolithic")["nice"] == 3

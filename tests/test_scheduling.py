@@ -64,3 +64,21 @@ def test_the_supervisor_hands_each_process_its_settings(tmp_path):
     assert Supervisor(cfg, build_plan(cfg), tmp_path / "m1").scheduling("monolithic") == {"nice": 0, "cpus": [1]}
     cfg = load_config("default", {"run": {**run, "topology": "monolithic", "nice": {"monolithic": 3}}})
     assert Supervisor(cfg, build_plan(cfg), tmp_path / "m2").scheduling("monolithic")["nice"] == 3
+
+
+def test_bus_tx_queue_reaches_every_process_config(tmp_path, monkeypatch):
+    from neoslam_stream.nodes.pipelines import build_plan
+    from neoslam_stream.runtime.bus import ZENOH_TX_QUEUE_ENV, make_config
+    from neoslam_stream.runtime.topology import Supervisor
+
+    monkeypatch.delenv(ZENOH_TX_QUEUE_ENV, raising=False)
+    assert json.loads(make_config().get_json("transport/link/tx/queue/size"))["data"] == 2  # zenoh's own
+    cfg = load_config("default", {"bus": {"tx_queue": 16}})
+    Supervisor(cfg, build_plan(cfg), tmp_path / "a").export_bus_settings()
+    assert json.loads(make_config().get_json("transport/link/tx/queue/size"))["data"] == 16
+    cfg = load_config("default")  # a later run in the same process without it: zenoh's default again
+    Supervisor(cfg, build_plan(cfg), tmp_path / "b").export_bus_settings()
+    assert json.loads(make_config().get_json("transport/link/tx/queue/size"))["data"] == 2
+    for bad in (0, 65):
+        with pytest.raises(ConfigError, match="tx_queue"):
+            load_config("default", {"bus": {"tx_queue": bad}})

@@ -43,6 +43,8 @@ def cmd_bench_throughput(args: argparse.Namespace) -> int:
         overrides.setdefault("projector", {})["feature_bits"] = args.feature_bits
     if args.image_capacity:
         overrides["bus"] = {"capacity": {"image": args.image_capacity}}
+    if args.tx_queue:
+        overrides.setdefault("bus", {})["tx_queue"] = args.tx_queue
     if args.threads:
         overrides["run"] = {"threads": args.threads}
     if args.nice:
@@ -97,6 +99,7 @@ def register(sub: argparse._SubParsersAction, bench_sub: argparse._SubParsersAct
                         "7 bits (torch's quantised int8 kernels; projector.feature_bits)")
     p.add_argument("--max-batch", type=int, help="override run.max_batch (1: every stage takes one frame at a time)")
     p.add_argument("--image-capacity", type=int, help="override the image ring capacity (bus.capacity.image)")
+    p.add_argument("--tx-queue", type=int, help="zenoh's transmit queue per link for data, in 64 kB batches (bus.tx_queue)")
     p.add_argument("--threads", type=_json_object, help='per-stage thread budget as JSON, e.g. \'{"A": 2}\'')
     p.add_argument("--nice", type=_json_object, help='per-process niceness as JSON (run.nice), e.g. \'{"C": 10, "monitor": 10}\'')
     p.add_argument("--cpus", type=_json_object, help='per-process CPUs as JSON (run.cpus), e.g. \'{"A": [0], "B": [1]}\'')

@@ -44,6 +44,8 @@ def key_for(run: str, topic: str) -> str:
 
 #: environment variable naming a zenoh config file applied under neoslam's own settings
 ZENOH_CONFIG_ENV = "NEOSLAM_ZENOH_CONFIG"
+#: bus.tx_queue, handed to every process of a run the same way
+ZENOH_TX_QUEUE_ENV = "NEOSLAM_ZENOH_TX_QUEUE"
 
 _ISSUED_PORTS: set[int] = set()
 
@@ -95,6 +97,9 @@ def make_config(listen: Sequence[str] | None = None, connect: Sequence[str] | No
     conf.insert_json5("listen/endpoints", json.dumps(list(listen or [])))
     conf.insert_json5("connect/endpoints", json.dumps(list(connect or [])))
     conf.insert_json5("transport/shared_memory/enabled", "true" if shm else "false")
+    tx_queue = os.environ.get(ZENOH_TX_QUEUE_ENV)
+    if tx_queue:
+        conf.insert_json5("transport/link/tx/queue/size/data", str(int(tx_queue)))
     return conf
 
 

@@ -39,7 +39,7 @@ from typing import Any
 import yaml
 
 from ..sources import source_factory
-from .bus import ZENOH_CONFIG_ENV, free_port, key_for, open_session
+from .bus import ZENOH_CONFIG_ENV, ZENOH_TX_QUEUE_ENV, free_port, key_for, open_session
 from .checkpoint import cut_dir, latest_complete_cut, latest_stage_state
 from .messages import Message, encode
 from .monitor import FinalTracker, MonitorSpec, StatsCollector, build_report, write_report
@@ -224,6 +224,16 @@ class Supervisor:
                            live=self.cfg.run.live, control_token=self.control_token)
 
     # ------------------------------------------------------------------ processes
+    def export_bus_settings(self) -> None:
+        """bus.zenoh_config and bus.tx_queue for every process of the run: spawned children
+        inherit this process's environment, and bus.make_config reads it."""
+        if self.cfg.bus.zenoh_config:
+            os.environ[ZENOH_CONFIG_ENV] = self.cfg.bus.zenoh_config
+        if self.cfg.bus.tx_queue:
+            os.environ[ZENOH_TX_QUEUE_ENV] = str(self.cfg.bus.tx_queue)
+        else:  # not left over from an earlier run of this process (a bench sweep)
+            os.environ.pop(ZENOH_TX_QUEUE_ENV, None)
+
     def scheduling(self, name: str) -> dict[str, Any]:
         """run.nice and run.cpus of process ``name`` (a worker, "source" or "monitor"): its own key,
         else those of the stages it hosts (the lowest niceness, the union of their CPUs; a stage not
@@ -292,8 +302,7 @@ class Supervisor:
                                                                  sort_keys=False))
         old_int = signal.signal(signal.SIGINT, self._on_signal)
         old_term = signal.signal(signal.SIGTERM, self._on_signal)
-        if self.cfg.bus.zenoh_config:  # every process of the run (spawned children inherit it)
-            os.environ[ZENOH_CONFIG_ENV] = self.cfg.bus.zenoh_config
+        self.export_bus_settings()
         # a router, so that tools attaching in client mode (`neoslam monitor`) reach every process
         self.session = open_session([self.endpoints["supervisor"], *self.cfg.bus.listen,
                                      *self.cfg.bus.router_listen],

@@ -70,7 +70,10 @@ def parse_image(payload: bytes | memoryview) -> dict[str, Any]:
         n = u32()
         if pos + n > len(buf):
             raise CdrError("truncated string in Image payload")
-        s = bytes(buf[pos:pos + n]).rstrip(b"\x00").decode("utf-8", "replace")
+        raw = bytes(buf[pos:pos + n])
+        if raw.endswith(b"\x00"):  # the length counts one terminating NUL; the content may hold more
+            raw = raw[:-1]
+        s = raw.decode("utf-8", "replace")
         pos += n
         return s
 

@@ -132,7 +132,8 @@ def rate_sweep(config: str | None, rates: list[float], duration: float, topologi
         row.update({"projection": cfg.projector.projection, "matrix_dtype": cfg.projector.matrix_dtype,
                     "feature_bits": cfg.projector.feature_bits, "max_batch": cfg.run.max_batch,
                     "nice": dict(cfg.run.nice), "cpus": dict(cfg.run.cpus), "tx_queue": cfg.bus.tx_queue,
-                    "image_capacity": cfg.bus.capacity.get("image")})
+                    "image_capacity": cfg.bus.capacity.get("image"),
+                    "loss_breakdown": res.report.get("loss_breakdown")})  # where frames were lost
         runs.append(row)
         if progress:
             print(f"      processed {row['frames_processed']} of {row['frames_in']}, loss {100 * row['loss']:.2f} %, "

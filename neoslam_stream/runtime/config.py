@@ -45,8 +45,8 @@ class BusConfig(Strict):
     #: access control; see docs/reliability.md); neoslam's endpoints, mode and scouting-off apply on top
     zenoh_config: str | None = None
     #: zenoh's transmit queue per link for data messages, in batches of 64 kB (zenoh's default: 2).
-    #: A's 260 kB feature messages need 5 batches: with 16, no message was dropped in the
-    #: transport at 60 FPS (docs/performance.md); each link then holds up to 1 MB
+    #: A's 260 kB feature messages need 5 batches: with 16, two of three 60 FPS runs had no
+    #: transport drop (docs/performance.md); each link then holds up to 1 MB
     tx_queue: int | None = Field(None, ge=1, le=64)
     #: input queue capacity per topic (real-time: ring, drop-oldest; lossless: FIFO, blocks).
     #: image 2: the newest frame plus one, so that a stage stalled for up to two frame periods

@@ -80,6 +80,8 @@ VALIDATE = {
     "--image-capacity 4 --out bench/results/throughput_60fps_5min",
     "neoslam bench throughput --rates 40,45,50,60,70,80 --duration 30 --topology both --matrix-dtype int8 "
     "--feature-bits 7 --out bench/results/throughput_ratio",
+    "neoslam bench throughput --rates 60 --duration 300 --topology pipeline --matrix-dtype int8 --feature-bits 7 "
+    "--tx-queue 16 --out bench/results/throughput_60fps_txqueue",
     "neoslam run -c paper",
     "neoslam run --oracle-templates",
     "neoslam run --oracle-templates --oracle-radius 0.25 --max-frames 1200",

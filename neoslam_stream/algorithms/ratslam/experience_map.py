@@ -36,7 +36,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from .._config import make_config
 from ..errors import InvalidInput
-from .pose_cells import CREATE_EDGE, CREATE_NODE, SET_NODE
+from .actions import CREATE_EDGE, CREATE_NODE, SET_NODE
+from .angles import clip_pi
 
 
 class ExperienceMapConfig(BaseModel):
@@ -54,15 +55,6 @@ class ExperienceMapConfig(BaseModel):
     #: large, as a wrong loop closure's does, moves the map by at most exp_correction * k / 2 per
     #: sweep, while links that agree with the rest (small r) pull as in OpenRatSLAM.
     exp_robust_m: float = Field(0.0, ge=0)
-
-
-def clip_pi(a: float) -> float:
-    """Wrap into (-pi, pi]."""
-    while a > math.pi:
-        a -= 2 * math.pi
-    while a <= -math.pi:
-        a += 2 * math.pi
-    return a
 
 
 def signed_delta(a1: float, a2: float) -> float:

@@ -35,6 +35,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from .._config import make_config
 from ..errors import InvalidInput
+from .actions import CREATE_EDGE, NO_ACTION, SET_NODE
+from .angles import clip_pi
 
 
 class OdometryBiasConfig(BaseModel):
@@ -78,10 +80,6 @@ class YawBiasEstimator:
     def on_action(self, action: int, dst: int, relative_rad: float = 0.0) -> None:
         """A pose-cell action (see pose_cells.get_action): note new experiences, and take a sample
         when the cells return to an old one."""
-        # imported here: pose_cells (and experience_map, through it) import this module's config
-        from .experience_map import clip_pi
-        from .pose_cells import CREATE_EDGE, NO_ACTION, SET_NODE
-
         if not self.enabled or action == NO_ACTION:
             return
         dst = int(dst)

@@ -43,10 +43,10 @@ from scipy.ndimage import correlate1d
 
 from .._config import make_config
 from ..errors import InvalidInput
+from .actions import CREATE_EDGE, CREATE_NODE, NO_ACTION, SET_NODE  # noqa: F401 (used here and re-exported)
 from .odometry_bias import OdometryBiasConfig
 from .odometry_gate import OdometryGateConfig
 
-NO_ACTION, CREATE_NODE, CREATE_EDGE, SET_NODE = 0, 1, 2, 3
 CELLS_TO_AVG = 3
 
 

@@ -1,0 +1,15 @@
+"""Angle helpers shared by the experience map and the odometry-bias estimator (a light module:
+the pose cells import the estimator and must not pull in the experience map's numba kernels)."""
+
+from __future__ import annotations
+
+import math
+
+
+def clip_pi(a: float) -> float:
+    """Wrap into (-pi, pi]."""
+    while a > math.pi:
+        a -= 2 * math.pi
+    while a <= -math.pi:
+        a += 2 * math.pi
+    return a

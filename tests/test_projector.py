@@ -157,6 +157,10 @@ def test_nan_features_are_rejected():
     with pytest.raises(ValueError, match="NaN"):
         bp.bits(bad)
     assert bp.n_seen == 0  # a rejected frame leaves the running mean alone
+    with pytest.raises(ValueError, match="one feature vector"):  # several rows: bits_batch
+        bp.bits(np.zeros((2, 10), np.float32))
+    with pytest.raises(ValueError, match="features of shape"):  # the wrong length
+        bp.bits(np.zeros(9, np.float32))
     stage = PN.make_node(input_dim=10)
     stage.setup()
     msg = Message("visual_features", 3, 0.3, {"features": bad, "backbone": "random_alexnet"})

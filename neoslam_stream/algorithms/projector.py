@@ -607,8 +607,13 @@ class BinaryProjector:
         return out
 
     def bits(self, feats: np.ndarray) -> np.ndarray:
-        """One feature vector -> its sLSBH bits (centring first when enabled)."""
-        return self.bits_batch(np.atleast_2d(self._check(feats)))[0]
+        """One feature vector (n,) -> its sLSBH bits (centring first when enabled); its values are
+        checked once, by :meth:`bits_batch`'s centring."""
+        f = np.asarray(feats)
+        if f.ndim != 1:
+            raise InvalidInput(f"bits() takes one feature vector ({self.input_dim},), got shape {f.shape}: "
+                               "use bits_batch for several")
+        return self.bits_batch(f[None, :])[0]
 
     def bits_batch(self, feats: np.ndarray) -> list[np.ndarray]:
         """(b, n) features -> b arrays of sorted uint16 bit indices; one pass over P."""

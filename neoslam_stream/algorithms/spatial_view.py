@@ -235,6 +235,20 @@ def _offer(j, s, b1, s1, b2, s2):  # pragma: no cover - compiled
     return b1, s1, b2, s2
 
 
+@njit(cache=True, inline="always")
+def _offer_hints(hints, limit, u_ptr, u_cells, inq):  # pragma: no cover - compiled
+    """The running top two (b1, s1, b2, s2) from the exact scores of the hinted intervals below
+    ``limit`` (``inq`` marks y_t's cells), and how many were scored; (limit + 1, -1) pairs when none."""
+    big = limit + 1
+    b1, s1, b2, s2 = big, -1, big, -1
+    scored = 0
+    for h in hints:
+        if 0 <= h < limit:
+            b1, s1, b2, s2 = _offer(h, _exact(h, u_ptr, u_cells, inq), b1, s1, b2, s2)
+            scored += 1
+    return b1, s1, b2, s2, scored
+
+
 @njit(cache=True)
 def _top2_counted(y, ptr, post, f_pool, f_next, f_head, f_tail, f_fill, pool, nxt, head, tail, fill, limit,
                   counts, verified):  # pragma: no cover - compiled
@@ -268,21 +282,15 @@ def _top2(y, lengths, ptr, post, f_pool, f_next, f_head, f_tail, f_fill, pool, n
     ``partial`` (>= limit) are zero on entry and on exit.
     """
     n = y.shape[0]
-    big = limit + 1
-    b1, s1, b2, s2 = big, -1, big, -1
     for c in y:
         inq[c] = 1
-    verified = 0
     if limit == 1:
         s = _exact(0, u_ptr, u_cells, inq)
         for c in y:
             inq[c] = 0
         return 0, s, -1, 0, 0, 1
     # 1. a lower bound from likely winners (the last frame's, the newest candidates): exact scores
-    for h in hints:
-        if 0 <= h < limit:
-            b1, s1, b2, s2 = _offer(h, _exact(h, u_ptr, u_cells, inq), b1, s1, b2, s2)
-            verified += 1
+    b1, s1, b2, s2, verified = _offer_hints(hints, limit, u_ptr, u_cells, inq)
     # 2. rarest lists first. After e lists an interval met in none of them scores at most n - e;
     # once n - e < s2 it cannot enter the top two (a tie needs s = s2), so candidate generation stops.
     order = np.argsort(lengths, kind="mergesort")
@@ -465,13 +473,10 @@ def _top2_sliced(y, rows, sparse, dense, ptr, post, f_pool, f_next, f_head, f_ta
     Scratch ``inq`` and ``partial`` are zero on entry and on exit. Returns (b1, s1, b2, s2,
     intervals looked at).
     """
-    big = limit + 1
-    b1, s1, b2, s2 = big, -1, big, -1
     for c in y:
         inq[c] = 1
-    for h in hints:  # a runner-up score from the likely winners: fewer intervals to look at
-        if 0 <= h < limit:
-            b1, s1, b2, s2 = _offer(h, _exact(h, u_ptr, u_cells, inq), b1, s1, b2, s2)
+    # a runner-up score from the likely winners: fewer intervals to look at
+    b1, s1, b2, s2, _ = _offer_hints(hints, limit, u_ptr, u_cells, inq)
     for c in y:
         inq[c] = 0
     n_touched = 0
@@ -880,6 +885,7 @@ class SpatialViewCells:
         rows = self._row_of[y]
         dense = rows > 0
         n_dense = int(dense.sum())
+        sparse_postings = int(lengths[~dense].sum())  # of the cells without a dense row
         sliced = self.sliced
         if limit < 2 or n_dense > (1 << SLICES) - 8:
             sliced = False
@@ -888,13 +894,12 @@ class SpatialViewCells:
             # bit-sliced count, ~2 ns per sparse posting, ~0.2 ns per posting the bounded search
             # could read (it reads ~5 % of them, at ~4 ns each)
             words = (n_dense + 7) // 8 * 8 * ((limit + 63) // 64)
-            sparse_postings = int(lengths[~dense].sum())
             sliced = n_dense > 0 and 3 * words + 10 * sparse_postings < int(lengths.sum())
         if sliced:
             self._dense_capacity(self.n_intervals - 1, 0)  # blocks to read even without any dense row
             r = np.sort(rows[dense]).astype(np.int64)
             r = np.concatenate([r, np.zeros(-len(r) % 8, np.int64)])
-            read = int(lengths[~dense].sum())  # postings of the cells without a dense row
+            read = sparse_postings
             b1, s1, b2, s2, verified = _top2_sliced(
                 y, r, y[~dense], self._dense, self._ptr, self._post, *frozen, self._pool, self._next, self._head,
                 self._tail, self._fill, self._u_ptr, self._u_cells, limit, h, self._inq, self._partial,

@@ -4,7 +4,10 @@ Keys: pc_ms_11, pc_ms_21, pc_ms_30 (one pose-cell odometry step, p50), lv_ms_100
 local-view match, iRat-sized 60x20 templates, shift +-4), relax_ms_1k, relax_ms_10k (one relaxation
 after an action, exp_loops 20, a chain of experiences with loop links), tuc_odometry_mean_m,
 tuc_map_mean_m (the TU Chemnitz corridor run, see neoslam_stream/datasets/tuc.py; rigid 2-D alignment), plus details
-and ``tuc_first_point`` (the same errors with the NeoSLAM authors' first-point alignment).
+and ``tuc_first_point`` (the same errors with the NeoSLAM authors' first-point alignment), ``tuc_first_point_rotated``
+(the same with the rotation about the first point fitted);
+tuc_paper_map_mean_m / ``tuc_paper`` (the corridor with TUC_PAPER_SETTINGS, before issue #14's
+levers) and ``tuc_target_issue14`` (map error over odometry's, target <= 0.30).
 Run: ``.venv/bin/python bench/ratslam.py``.
 """
 
@@ -25,7 +28,12 @@ from neoslam_stream.algorithms.ratslam.experience_map import ExperienceMap  # no
 from neoslam_stream.algorithms.ratslam.local_view import LocalViewCells  # noqa: E402
 from neoslam_stream.algorithms.ratslam.pose_cells import PoseCellNetwork  # noqa: E402
 from neoslam_stream.datasets import tuc  # noqa: E402
-from neoslam_stream.datasets.tuc import TUC_SETTINGS, first_point_error  # noqa: E402
+from neoslam_stream.datasets.tuc import (  # noqa: E402
+    TUC_PAPER_SETTINGS,
+    TUC_SETTINGS,
+    first_point_error,
+    first_point_rotated_error,
+)
 
 
 def bench_pc(n: int) -> float:
@@ -88,7 +96,23 @@ def main() -> None:
         res["tuc_first_point"] = {"odometry_mean_m": float(fo.mean()), "odometry_max_m": float(fo.max()),
                                   "map_mean_m": float(fm.mean()), "map_max_m": float(fm.max()),
                                   "alignment": "first point subtracted, no rotation (NeoSLAM authors' metric)"}
+        fo, fm = first_point_rotated_error(r["odo"][:, 1:], r["gt"]), first_point_rotated_error(r["est"][:, 1:], r["gt"])
+        res["tuc_first_point_rotated"] = {
+            "odometry_mean_m": float(fo.mean()), "map_mean_m": float(fm.mean()),
+            "alignment": "first point subtracted, rotation about it fitted (without it the authors' metric mostly "
+                         "measures the angle between the robot's start heading and the ground truth's x axis)"}
         print("tuc", res["tuc"], flush=True)
+        p = tuc.run(TUC_PAPER_SETTINGS["pc"], TUC_PAPER_SETTINGS["em"], TUC_PAPER_SETTINGS["threshold"],
+                    TUC_PAPER_SETTINGS["min_gap_s"])
+        res.update({"tuc_paper_map_mean_m": p["map_mean_m"], "tuc_paper_settings": TUC_PAPER_SETTINGS,
+                    "tuc_paper": {k: v for k, v in p.items() if not hasattr(v, "shape")}})
+        pr = first_point_rotated_error(p["est"][:, 1:], p["gt"])
+        res["tuc_first_point_rotated"]["paper_map_mean_m"] = float(pr.mean())
+        res["tuc_target_issue14"] = {
+            "map_over_odometry": r["map_mean_m"] / r["odometry_mean_m"], "target": "<= 0.30",
+            "reached": r["map_mean_m"] <= 0.3 * r["odometry_mean_m"],
+            "paper_map_over_odometry": p["map_mean_m"] / p["odometry_mean_m"]}
+        print("tuc paper", res["tuc_paper"], flush=True)
         try:
             import matplotlib
 
@@ -98,10 +122,14 @@ def main() -> None:
             fig, ax = plt.subplots(figsize=(10, 4))
             ax.plot(r["gt"][:, 0], r["gt"][:, 1], "k-", lw=1, label="ground truth")
             ax.plot(*tuc.align_rigid_2d(r["odo"][:, 1:], r["gt"]).T, "r-", lw=0.7, label="odometry")
-            ax.plot(*tuc.align_rigid_2d(r["est"][:, 1:], r["gt"]).T, "b-", lw=0.7, label="experience map")
+            ax.plot(*tuc.align_rigid_2d(p["est"][:, 1:], p["gt"]).T, "-", color="orange", lw=0.7,
+                    label=f"experience map, paper settings ({p['map_mean_m']:.1f} m)")
+            ax.plot(*tuc.align_rigid_2d(r["est"][:, 1:], r["gt"]).T, "b-", lw=0.7,
+                    label=f"experience map, default settings ({r['map_mean_m']:.1f} m)")
             ax.set_aspect("equal")
-            ax.legend()
-            ax.set_title(f"TUC corridor: mean error map {r['map_mean_m']:.1f} m, odometry {r['odometry_mean_m']:.1f} m")
+            ax.legend(fontsize=8)
+            ax.set_title(f"TUC corridor: mean error map {r['map_mean_m']:.1f} m (paper settings "
+                         f"{p['map_mean_m']:.1f} m), odometry {r['odometry_mean_m']:.1f} m")
             fig.savefig(Path(__file__).parent / "results" / "ratslam_tuc.png", dpi=110, bbox_inches="tight")
         except Exception as exc:  # the plot is a convenience
             print("plot failed:", exc)

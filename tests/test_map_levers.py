@@ -272,3 +272,67 @@ def test_pose_cell_node_sends_the_corrected_yaw_rate_to_the_map():
     ((_, action),) = node.process("odom", Message("odom", 0, 0.0, {"vtrans": 1.0, "vrot": 0.5, "dt": 0.1}))
     assert action["vrot"] == pytest.approx(0.48)
     assert node.info()["yaw_bias_rad_s"] == pytest.approx(0.02)
+
+
+def test_yaw_bias_from_templates_samples_returns_and_takes_reversed_views_modulo_pi():
+    from neoslam_stream.algorithms.ratslam.odometry_bias import YawBiasEstimator
+    from neoslam_stream.algorithms.ratslam.pose_cells import SET_NODE
+
+    # by hand, as the circle above: template 7 first seen, one circle of 100 s with odometry
+    # reading 0.01 rad/s too much, template 7 again: drift 1 rad over 100 s, b = 0.01 rad/s
+    est = YawBiasEstimator(enabled=True, samples_from="templates")
+    est.on_action(CREATE_NODE, 0)  # actions are not this source's: ignored
+    est.on_template(7)
+    _circle(est, 0.0, 0.01, 40.0)
+    est.on_template(7)  # still the same view (no return): no sample, even after min_gap_s
+    assert est.samples == 0 and est.born == {7: (0.0, 0.0)} and est.bias == 0.0
+    est.on_template(8)
+    _circle(est, 2 * math.pi / 60, 0.01, 60.0)
+    est.on_template(7)  # a return, 100 s after its birth: raw heading 2 pi + 0.4 + 0.6 rad
+    assert est.samples == 1 and est.bias == pytest.approx(0.01, rel=1e-9)
+    est.on_action(SET_NODE, 0)
+    assert est.samples == 1
+
+    # the same place seen the other way round (half a turn off, 0.5 rad of drift over 50 s):
+    # a forward front end's estimator rejects it (rate pi / 50 s off the estimate), a
+    # bidirectional one takes the same 0.5 rad it would have taken facing the first way
+    for bidirectional, samples, bias in ((False, 1, 0.01), (True, 2, (1.0 * 100 + 0.5 * 50) / (100**2 + 50**2))):
+        e = YawBiasEstimator(enabled=True, samples_from="templates", bidirectional=bidirectional,
+                             forget_s=0.0, max_residual_rad_s=0.05)
+        e.on_template(7)
+        e.on_template(8)
+        _circle(e, 2 * math.pi / 100, 0.01, 100.0)
+        e.on_template(7)  # drift 1 rad over 100 s, as above
+        e.on_template(9)
+        _circle(e, math.pi / 50, 0.01, 50.0)  # half a turn: facing the opposite way
+        e.on_template(9)  # not a return: 9 was the previous template
+        assert e.samples == 1
+        e.on_template(3)
+        e.on_template(9)
+        assert e.samples == samples and e.outliers == 2 - samples
+        assert e.bias == pytest.approx(bias, rel=1e-9)
+
+
+def test_pose_cell_node_feeds_every_template_to_the_bias_before_the_gate():
+    from neoslam_stream.nodes.ratslam import make_pose_cells_node
+    from neoslam_stream.runtime.messages import Message
+
+    # the gate (1 m) refuses template 0 after 60 m of odometry; the bias still takes its sample
+    node = make_pose_cells_node(odometry_bias={"enabled": True, "samples_from": "templates"},
+                                odometry_gate={"radius_m": 1.0, "drift": 0.0})
+    frame = 0
+
+    def step(template, seconds, vtrans, vrot):
+        nonlocal frame
+        for _ in range(round(seconds / 0.1)):
+            if template is not None:
+                node.process("visual_template", Message("visual_template", frame, frame * 0.1, {"id": template}))
+            node.process("odom", Message("odom", frame, frame * 0.1, {"vtrans": vtrans, "vrot": vrot, "dt": 0.1}))
+            frame += 1
+
+    step(0, 0.1, 0.0, 0.0)
+    step(1, 0.1, 0.0, 0.0)
+    step(None, 60.0, 1.0, 0.02)  # 60 m straight ahead, the odometry turning 0.02 rad/s (1.2 rad)
+    step(0, 0.1, 0.0, 0.0)
+    assert node.gate.refused == 1
+    assert node.bias.samples == 1 and node.bias.bias == pytest.approx(1.2 / 60.2, rel=1e-6)

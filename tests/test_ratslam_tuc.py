@@ -3,7 +3,7 @@
 import pytest
 
 from neoslam_stream.datasets import tuc
-from neoslam_stream.datasets.tuc import TUC_SETTINGS, first_point_error
+from neoslam_stream.datasets.tuc import TUC_SETTINGS, first_point_rotated_error
 
 pytestmark = pytest.mark.skipif(not tuc.DATA.is_dir(), reason="../shared/data/tuc_slam_odom_loops absent")
 
@@ -12,15 +12,36 @@ def test_experience_map_beats_odometry_on_real_drift():
     s = TUC_SETTINGS
     r = tuc.run(s["pc"], s["em"], s["threshold"], s["min_gap_s"])
     assert r["recognised_frames"] > 50  # the loop candidates do produce revisits
-    # Loop closures must remove a substantial part of the drift: at least 30 % of odometry's mean
-    # error (both trajectories aligned the same way to ground truth). Odometry alone drifts by
-    # ~50 m over 880 m of corridor; a map that merely follows odometry would fail this.
-    assert r["map_mean_m"] < 0.7 * r["odometry_mean_m"], r
-    # the NeoSLAM authors' alignment (first points subtracted, no rotation fitted) is dominated by
-    # the heading error of the first metres, which no loop closure undoes: the map must not be
-    # worse than odometry there (observed 61.9 vs 63.9 m with position rows only, issue #14)
-    odo, est = first_point_error(r["odo"][:, 1:], r["gt"]), first_point_error(r["est"][:, 1:], r["gt"])
-    assert est.mean() < odo.mean(), (est.mean(), odo.mean())
+    # Issue #14's target: the map's mean error at most 30 % of odometry's (both trajectories
+    # aligned the same way to ground truth). Odometry alone drifts by ~50 m over the run's
+    # 880 m; a map that merely follows odometry, or that keeps the look-alike closures ~86 m
+    # away (the paper settings: ~34 m), fails this.
+    assert r["map_mean_m"] <= 0.3 * r["odometry_mean_m"], r
+    # the yaw-rate bias is measured from the closures: it must be within 25 % of the constant
+    # rate whose removal makes dead reckoning fit ground truth best (found here by a grid search
+    # on the raw odometry and the ground truth, independently of the estimator)
+    best = _best_constant_yaw_bias()
+    assert abs(r["yaw_bias_rad_s"] - best) < 0.25 * abs(best), (r["yaw_bias_rad_s"], best)
+    # the NeoSLAM authors' alignment (first points subtracted) with the rotation about the first
+    # point fitted (without it the metric mostly measures the angle between the robot's start
+    # heading and the ground truth's x axis): the map must beat odometry there too
+    odo = first_point_rotated_error(r["odo"][:, 1:], r["gt"])
+    est = first_point_rotated_error(r["est"][:, 1:], r["gt"])
+    assert est.mean() < 0.5 * odo.mean(), (est.mean(), odo.mean())
+
+
+def _best_constant_yaw_bias() -> float:
+    import numpy as np
+
+    odom, _, gt = tuc.load()
+    dt = np.r_[0.0, np.diff(odom[:, 0])]
+    ref = gt[np.clip(np.searchsorted(gt[:, 0], odom[:, 0]), 0, len(gt) - 1), 1:3]
+    errors = {}
+    for b in np.arange(-0.006, 0.006001, 0.00025):
+        th = np.cumsum((odom[:, 2] - b) * dt)
+        xy = np.c_[np.cumsum(odom[:, 1] * dt * np.cos(th)), np.cumsum(odom[:, 1] * dt * np.sin(th))]
+        errors[float(b)] = float(np.linalg.norm(tuc.align_rigid_2d(xy, ref) - ref, axis=1).mean())
+    return min(errors, key=errors.get)
 
 
 def test_ground_truth_reader_keeps_position_rows_only():

@@ -86,8 +86,12 @@ class PoseCellsNode(Node):
         out: Output = []
         while self.pending and next(iter(self.pending)) < msg.frame:
             out += self._odo(self.pending.pop(next(iter(self.pending))))
-        if not self.gate.enabled or self.gate.check(int(msg["id"])):
-            self.pc.on_view_template(int(msg["id"]), float(msg.data.get("relative_rad", 0.0)))
+        vt, rel = int(msg["id"]), float(msg.data.get("relative_rad", 0.0))
+        # the bias sees every recognition (samples_from: templates), the gate's refusals too: a
+        # look-alike still faces the way the place was seen, and the gate needs the estimate
+        self.bias.on_template(vt, rel)
+        if not self.gate.enabled or self.gate.check(vt):
+            self.pc.on_view_template(vt, rel)
         self.last_template_frame = max(self.last_template_frame, msg.frame)
         odo = self.pending.pop(msg.frame, None)
         if odo is not None:

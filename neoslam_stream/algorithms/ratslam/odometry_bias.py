@@ -18,17 +18,35 @@ these samples, b = sum w_i drift_i gap_i / sum w_i gap_i^2, with w_i = exp(-age_
 rate drift_i / gap_i differs from b by more than ``max_residual_rad_s`` is counted as an outlier
 and left out. The pose cells and the experience map then integrate vrot - b.
 
-It assumes that a recognised place is seen facing the same way as when it was first seen, as a
-forward camera's place recognition does; a front end that matches a place seen the other way round
-(a symmetric corridor) gives samples off by half a turn, which the residual test rejects once an
-estimate exists. ``enabled: false`` (the model's default; the paper profile) integrates the
-odometry as it comes.
+Where the samples come from (``samples_from``):
+
+* ``actions`` (the default): the pose cells' returns to an experience, as above. They exist only
+  where the recognised view also moved the pose cells, so the first samples wait for the pose
+  cells to accept a closure.
+* ``templates``: the recognitions themselves. Each visual template's raw heading H and time are
+  noted when the pose-cell node first receives it; whenever a template arrives again (a return:
+  it differs from the template received just before) at least ``min_gap_s`` after its birth, the
+  same drift sample is taken with t_e its birth. A recognised view measures the heading whether or
+  not it is the right place: a look-alike at the other end of a corridor faces the same way, so
+  the estimate converges from the first recognitions, before (and independently of) what the pose
+  cells and an odometry gate make of them. This is what lets an odometry gate work on a long run
+  with a large yaw bias (the TUC corridor: docs/mapping.md).
+
+``bidirectional``: a front end that recognises a place seen the other way round too (the TUC
+corridor's candidates: an omnidirectional or symmetric view) says the heading only up to half a
+turn, so the wrap above is taken modulo pi instead of 2 pi (a sample off by half a turn is then
+the same sample). Without it such a recognition gives a sample off by half a turn, which the
+residual test rejects once an estimate exists, but only while pi / gap exceeds
+``max_residual_rad_s``: on long gaps a reversed view looks like a moderate bias. A forward camera
+(the synthetic world) does not see a place the other way round: ``false``.
+
+``enabled: false`` (the model's default; the paper profile) integrates the odometry as it comes.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -48,11 +66,16 @@ class OdometryBiasConfig(BaseModel):
     min_gap_s: float = Field(30.0, ge=0, description="closures sooner after the experience's creation are not used")
     max_residual_rad_s: float = Field(0.05, gt=0, description="samples whose rate differs more from the estimate are outliers")
     forget_s: float = Field(120.0, ge=0, description="a sample's weight is exp(-age / forget_s) (0: never forgotten)")
+    samples_from: Literal["actions", "templates"] = Field(
+        "actions", description="returns of the pose cells to an experience, or recognised visual templates")
+    bidirectional: bool = Field(False, description="places are also recognised seen the other way round: "
+                                                   "headings are compared modulo pi")
 
 
 class YawBiasEstimator:
     """See the module docstring. Per odometry sample :meth:`correct` (returns the corrected yaw
-    rate), per pose-cell action :meth:`on_action`."""
+    rate), per pose-cell action :meth:`on_action`, per visual template received
+    :meth:`on_template` (each ignores what ``samples_from`` does not name)."""
 
     def __init__(self, config: OdometryBiasConfig | None = None, **overrides: Any) -> None:
         self.config = cfg = make_config(OdometryBiasConfig, config, overrides)
@@ -62,8 +85,10 @@ class YawBiasEstimator:
         #: H(t): the raw yaw rate's integral, and t: the odometry's time
         self.heading = 0.0
         self.t = 0.0
-        #: experience id -> (H, t) when the pose cells created it
+        #: experience (or template, with samples_from templates) id -> (H, t) at its creation
         self.born: dict[int, tuple[float, float]] = {}
+        self._period = math.pi if cfg.bidirectional else 2 * math.pi
+        self.last_template = -1
         self._sum_dg = self._sum_gg = 0.0
         self._last_sample_t = 0.0
         self.samples = 0
@@ -80,19 +105,34 @@ class YawBiasEstimator:
     def on_action(self, action: int, dst: int, relative_rad: float = 0.0) -> None:
         """A pose-cell action (see pose_cells.get_action): note new experiences, and take a sample
         when the cells return to an old one."""
-        if not self.enabled or action == NO_ACTION:
+        if not self.enabled or action == NO_ACTION or self.config.samples_from != "actions":
             return
         dst = int(dst)
         if dst not in self.born:
             self.born[dst] = (self.heading, self.t)
             return
-        if action not in (CREATE_EDGE, SET_NODE):
+        if action in (CREATE_EDGE, SET_NODE):
+            self._sample(dst, relative_rad)
+
+    def on_template(self, template: int, relative_rad: float = 0.0) -> None:
+        """A visual template reached the pose-cell node (``samples_from: templates``): note a new
+        one, and take a sample when the robot returns to an old one."""
+        if not self.enabled or self.config.samples_from != "templates":
             return
-        h0, t0 = self.born[dst]
+        template = int(template)
+        previous, self.last_template = self.last_template, template
+        if template not in self.born:
+            self.born[template] = (self.heading, self.t)
+        elif template != previous:
+            self._sample(template, relative_rad)
+
+    def _sample(self, ref: int, relative_rad: float) -> None:
+        """One drift sample against reference ``ref`` (an experience or a template) and the new b."""
+        h0, t0 = self.born[ref]
         gap = self.t - t0
         if gap < self.config.min_gap_s or gap <= 0:
             return
-        drift = clip_pi(self.heading - h0 - relative_rad - self.bias * gap) + self.bias * gap
+        drift = self._wrap(self.heading - h0 - relative_rad - self.bias * gap) + self.bias * gap
         if self.samples and abs(drift / gap - self.bias) > self.config.max_residual_rad_s:
             self.outliers += 1
             return
@@ -106,19 +146,28 @@ class YawBiasEstimator:
         self.samples += 1
         self.bias = self._sum_dg / self._sum_gg
 
+    def _wrap(self, a: float) -> float:
+        """a wrapped into [-period/2, period/2): clip_pi's rule, modulo pi when bidirectional."""
+        if self._period == 2 * math.pi:
+            return clip_pi(a)
+        return (a + math.pi / 2) % math.pi - math.pi / 2
+
     def new_session(self) -> None:
         """A new session of a loaded map: the robot's heading is unrelated to the raw heading of the
         old session, so its experiences can no longer serve as references; the bias (the same
         robot's odometry) is kept."""
         self.born = {}
+        self.last_template = -1
 
     def state_dict(self) -> dict[str, Any]:
         return {"scalars": [self.bias, self.heading, self.t, self._sum_dg, self._sum_gg, self._last_sample_t,
                             self.samples, self.outliers],
+                "last_template": self.last_template,
                 "born": np.array([(k, h, t) for k, (h, t) in self.born.items()], dtype=np.float64).reshape(-1, 3)}
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
         (self.bias, self.heading, self.t, self._sum_dg, self._sum_gg, self._last_sample_t,
          samples, outliers) = (float(v) for v in st["scalars"])
         self.samples, self.outliers = int(samples), int(outliers)
+        self.last_template = int(st.get("last_template", -1))  # checkpoints written before samples_from
         self.born = {int(k): (float(h), float(t)) for k, h, t in np.asarray(st["born"], dtype=np.float64).reshape(-1, 3)}

@@ -168,11 +168,23 @@ def nordland_inputs(backbone: str = "efficientnet_lite0") -> dict[str, Any]:
 def run_nordland(proj: dict, svc_list: list[dict], data: dict[str, Any]) -> list[dict]:
     """B (``proj`` on top of the defaults), the real C and D (each of ``svc_list``; theta_sigma None:
     calibrated on summer as in the Nordland test) on the cached features; precision / recall."""
-    from neoslam_stream.algorithms.neocortex import Neocortex
-    from neoslam_stream.algorithms.projector import BinaryProjector
     from neoslam_stream.datasets.nordland import spatial_view_runs
 
-    feats, ids, n = data["features"], data["ids"], data["n"]
+    bits, sdr = nordland_sdrs(proj, data)
+    ids, n = data["ids"], data["n"]
+    out = []
+    for svc, _, _, r, _ in spatial_view_runs(bits, sdr, ids, n, svc_list, NORDLAND["tolerance"]):
+        r.update({"svc": svc, "proj": proj, "places": n})
+        out.append(r)
+    return out
+
+
+def nordland_sdrs(proj: dict, data: dict[str, Any]) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """B's bits (``proj`` on top of the defaults) and the real C's winner cells of every frame, cached."""
+    from neoslam_stream.algorithms.neocortex import Neocortex
+    from neoslam_stream.algorithms.projector import BinaryProjector
+
+    feats = data["features"]
     path = CACHE / f"nordland_sdr_{_key([proj, feats.shape])}.npz"
     if path.exists():
         z = np.load(path)
@@ -188,11 +200,56 @@ def run_nordland(proj: dict, svc_list: list[dict], data: dict[str, Any]) -> list
                 sdr.append(np.asarray(nc.compute(b)))
         np.savez(path, bits=np.concatenate(bits), bptr=np.cumsum([0] + [len(b) for b in bits]),
                  cells=np.concatenate(sdr), cptr=np.cumsum([0] + [len(c) for c in sdr]))
-    out = []
-    for svc, _, _, r, _ in spatial_view_runs(bits, sdr, ids, n, svc_list, NORDLAND["tolerance"]):
-        r.update({"svc": svc, "proj": proj, "places": n})
-        out.append(r)
-    return out
+    return bits, sdr
+
+
+def _precision_at_recall(scores: np.ndarray, correct: np.ndarray, recall: float = 0.2) -> dict[str, float]:
+    """Each winter frame's best match ranked by its confidence (best score, or margin to the
+    runner-up): recall@1, the precision at ``recall`` and the largest recall at precision 0.9."""
+    top = np.sort(scores, axis=1)
+    res: dict[str, float] = {"recall_at_1": float(correct.mean())}
+    for name, conf in (("score", top[:, -1]), ("margin", top[:, -1] - top[:, -2])):
+        hits = np.cumsum(correct[np.argsort(-conf, kind="stable")])
+        prec, rec = hits / np.arange(1, len(hits) + 1), hits / len(hits)
+        res[f"precision_at_recall_{recall}_by_{name}"] = float(prec[min(np.searchsorted(rec, recall), len(prec) - 1)])
+        res[f"recall_at_precision_0.9_by_{name}"] = float(rec[prec >= 0.9].max()) if (prec >= 0.9).any() else 0.0
+    return res
+
+
+def nordland_ceiling(data: dict[str, Any]) -> dict[str, Any]:
+    """Where Nordland's place information is lost: each winter frame's best match by similarity
+    alone (A: cosine of the features; B: overlap of the bits, raw and centred), against the summer
+    frames only and against what D searches in a stream (summer and the earlier winter frames, less
+    the last 3); a match is correct when it is a summer frame within the tolerance (a winter frame is
+    a template the winter pass created: wrong)."""
+    feats, ids, n = data["features"], np.asarray(data["ids"]), data["n"]
+    m = len(feats) - n
+
+    def both(sim: np.ndarray) -> dict[str, Any]:
+        summer = sim[:, :n]
+        ok = np.abs(ids[summer.argmax(1)] - ids) <= NORDLAND["tolerance"]
+        stream = sim.copy()
+        for i in range(m):
+            stream[i, n + max(0, i - 3):] = -np.inf
+        best = stream.argmax(1)
+        ok_stream = (best < n) & (np.abs(ids[np.minimum(best, n - 1)] - ids) <= NORDLAND["tolerance"])
+        return {"summer_only": _precision_at_recall(summer, ok),
+                "stream": _precision_at_recall(np.where(np.isfinite(stream), stream, -1e9), ok_stream),
+                "stream_best_is_winter": float((best >= n).mean())}
+
+    unit = feats / np.linalg.norm(feats, axis=1, keepdims=True)
+    res: dict[str, Any] = {"A_cosine": both(unit[n:] @ unit.T)}
+    for name, proj in (("B_bits", {}), ("B_bits_centred", {"centre_window": 100})):
+        bits, _ = nordland_sdrs(proj, data)
+        dense = np.zeros((len(bits), 2048), np.float32)
+        for i, b in enumerate(bits):
+            dense[i, b] = 1.0
+        res[name] = both(dense[n:] @ dense.T)
+    res["about"] = ("winter frame -> best match by similarity alone; summer_only: the summer frames; stream: "
+                    "what D searches (summer + earlier winter frames, less the last 3); correct: a summer frame "
+                    f"within {NORDLAND['tolerance']} source frames; precision at recall 0.2 ranking the frames by "
+                    "their best score or by the margin to the runner-up")
+    return res
 
 
 _SVC = dict(theta_alpha=384, theta_rho=3, exclude_recent_intervals=3)
@@ -211,19 +268,34 @@ TUC_LEVERS = [("none", {}, {}, None)] + [
     (f"gate_5_{c}", {"odometry_gate": {"radius_m": 5.0, "drift": c}}, {}, None) for c in (0.05, 0.1, 0.2, 0.3, 0.5)] + [
     ("pc_cell_2m", {"pc_cell_x_size": 2.0}, {}, None), ("pc_inject_0.3", {"pc_vt_inject_energy": 0.3}, {}, None)] + [
     (f"sequence_{n}", {}, {}, {"length": n, "max_step": 2.0, "slack": 2}) for n in (2, 3, 5)] + [
-    ("odometry_bias", {"odometry_bias": {"enabled": True}}, {}, None)]
+    ("odometry_bias", {"odometry_bias": {"enabled": True}}, {}, None)] + [
+    # issue #14, second round: the bias sampled from every recognition, modulo half a turn
+    (name, {"odometry_bias": {"enabled": True, **bias}}, {}, None) for name, bias in (
+        ("bias_templates", {"samples_from": "templates"}),
+        ("bias_bidirectional", {"bidirectional": True}),
+        ("bias_templates_bidirectional", {"samples_from": "templates", "bidirectional": True}))] + [
+    ("gate_20_0.1", {"odometry_gate": {"radius_m": 20.0, "drift": 0.1}}, {}, None),
+    ("bias_templates_gate_20_0.1", {"odometry_bias": {"enabled": True, "samples_from": "templates"},
+                                    "odometry_gate": {"radius_m": 20.0, "drift": 0.1}}, {}, None),
+    ("bias_bidirectional_gate_20_0.1", {"odometry_bias": {"enabled": True, "bidirectional": True},
+                                        "odometry_gate": {"radius_m": 20.0, "drift": 0.1}}, {}, None)] + [
+    (f"bias_templates_bidirectional_gate_{r}_{c}",
+     {"odometry_bias": {"enabled": True, "samples_from": "templates", "bidirectional": True},
+      "odometry_gate": {"radius_m": float(r), "drift": c}}, {}, None)
+    for r, c in ((2, 0.1), (5, 0.05), (5, 0.1), (10, 0.05), (10, 0.1), (20, 0.02), (20, 0.05), (20, 0.1),
+                 (20, 0.15), (20, 0.2), (20, 0.3), (30, 0.1), (40, 0.2))]
 
 
 def tuc_levers() -> dict[str, Any]:
-    """Each TUC lever alone on the shipped TUC settings (positions-only ground truth)."""
+    """Each TUC lever alone on the corridor's paper settings (positions-only ground truth)."""
     from neoslam_stream.datasets import tuc
-    from neoslam_stream.datasets.tuc import TUC_SETTINGS as S
+    from neoslam_stream.datasets.tuc import TUC_PAPER_SETTINGS as S
 
     res = {}
     for name, pc, em, seq in TUC_LEVERS:
         r = tuc.run({**S["pc"], **pc}, {**S["em"], **em}, S["threshold"], S["min_gap_s"], sequence=seq)
         res[name] = {k: r[k] for k in ("map_mean_m", "map_on_final_mean_m", "odometry_mean_m", "recognised_frames",
-                                       "gate_refused", "yaw_bias_rad_s")}
+                                       "gate_refused", "yaw_bias_rad_s", "yaw_bias_samples")}
         print("tuc", name, res[name], flush=True)
     return res
 
@@ -247,6 +319,8 @@ def main() -> None:
     ap.add_argument("--out", default=str(RESULTS / "maps.json"))
     ap.add_argument("--nordland", action="store_true", help="the Nordland levers instead")
     ap.add_argument("--tuc", action="store_true", help="the TUC corridor levers instead")
+    ap.add_argument("--nordland-ceiling", action="store_true",
+                    help="where Nordland's place information is lost (A, B; summer only vs the stream)")
     args = ap.parse_args()
     from neoslam_stream.config import FullRunConfig
 
@@ -254,7 +328,10 @@ def main() -> None:
     out = Path(args.out)
     if out.exists():
         results = json.loads(out.read_text())
-    if args.nordland or args.tuc:
+    if args.nordland or args.tuc or args.nordland_ceiling:
+        if args.nordland_ceiling:
+            results["nordland_ceiling"] = nordland_ceiling(nordland_inputs())
+            print(json.dumps(results["nordland_ceiling"], indent=1))
         if args.nordland:
             data_n = nordland_inputs()
             results["nordland"] = [
@@ -333,6 +410,28 @@ LEVERS: dict[str, dict] = {
     **{f"seq10_bias_forget{f}": {"spatial_view": {"sequence": {"length": 10, "max_step": 2.0, "slack": 4}},
                                  "pose_cells": {"odometry_bias": {"enabled": True, "forget_s": float(f)}}}
        for f in (0, 60, 300)},
+    **{f"seq10_bias_{name}": {"spatial_view": {"sequence": {"length": 10, "max_step": 2.0, "slack": 4}},
+                              "pose_cells": {"odometry_bias": {"enabled": True}, **pc},
+                              "experience_map": em}
+       for name, pc, em in (("torus_30x0.5", {"pc_dim_xy": 30, "pc_cell_x_size": 0.5}, {}),
+                            ("torus_41x0.25", {"pc_dim_xy": 41}, {}),
+                            ("inject0.3", {"pc_vt_inject_energy": 0.3}, {}),
+                            ("loops100", {}, {"exp_loops": 100}),
+                            *((f"loops{n}", {}, {"exp_loops": n}) for n in (50, 200, 300, 400, 500, 700)),
+                            ("loops1000", {}, {"exp_loops": 1000}),
+                            ("loops300_robust1", {}, {"exp_loops": 300, "exp_robust_m": 1.0}),
+                            ("robust1", {}, {"exp_robust_m": 1.0}))},
+    "seq10_bias_templates": {"spatial_view": {"sequence": {"length": 10, "max_step": 2.0, "slack": 4}},
+                             "pose_cells": {"odometry_bias": {"enabled": True, "samples_from": "templates"}}},
+    **{f"seq10_bias_gate_{r}_{c}": {"spatial_view": {"sequence": {"length": 10, "max_step": 2.0, "slack": 4}},
+                                    "pose_cells": {"odometry_bias": {"enabled": True},
+                                                   "odometry_gate": {"radius_m": float(r), "drift": c}}}
+       for r, c in ((1, 0.1), (2, 0.1), (5, 0.1))},
+    **{f"seq10_bias_templates_gate_{r}_{c}": {
+        "spatial_view": {"sequence": {"length": 10, "max_step": 2.0, "slack": 4}},
+        "pose_cells": {"odometry_bias": {"enabled": True, "samples_from": "templates"},
+                       "odometry_gate": {"radius_m": float(r), "drift": c}}}
+       for r, c in ((1, 0.1), (2, 0.1), (5, 0.1))},
 }
 
 

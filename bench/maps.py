@@ -239,7 +239,8 @@ def nordland_ceiling(data: dict[str, Any]) -> dict[str, Any]:
 
     unit = feats / np.linalg.norm(feats, axis=1, keepdims=True)
     res: dict[str, Any] = {"A_cosine": both(unit[n:] @ unit.T)}
-    for name, proj in (("B_bits", {}), ("B_bits_centred", {"centre_window": 100})):
+    for name, proj in (("B_bits", {}), ("B_bits_centred", {"centre_window": 100}),
+                       ("B_bits_centred_30", {"centre_window": 30})):
         bits, _ = nordland_sdrs(proj, data)
         dense = np.zeros((len(bits), 2048), np.float32)
         for i, b in enumerate(bits):
@@ -259,8 +260,11 @@ NORDLAND_LEVERS = [
     (proj, [dict(_SVC, theta_sigma=None), dict(_SVC, theta_sigma=470)]
      + [dict(_SVC, theta_sigma=None, sequence={"length": n, **_SEQ}) for n in (2, 3, 5, 10)]
      + [dict(_SVC, theta_sigma=None, sequence={"min_gap_frames": 200}),
-        dict(_SVC, theta_sigma=None, sequence={"length": 3, **_SEQ, "min_gap_frames": 200})])
-    for proj in ({}, {"centre_window": 100})]
+        dict(_SVC, theta_sigma=None, sequence={"length": 3, **_SEQ, "min_gap_frames": 200}),
+        # 395 of the 417 places: a winter frame can only match summer frames (the place's own
+        # summer frame lies 417 frames back), i.e. D against the summer-only database
+        dict(_SVC, theta_sigma=None, sequence={"min_gap_frames": 395})])
+    for proj in ({}, {"centre_window": 100}, {"centre_window": 30})]
 
 #: TUC corridor levers: (name, pose-cell overrides, experience-map overrides, sequence filter)
 TUC_LEVERS = [("none", {}, {}, None)] + [

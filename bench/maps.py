@@ -216,6 +216,44 @@ def _precision_at_recall(scores: np.ndarray, correct: np.ndarray, recall: float 
     return res
 
 
+def nordland_d_closures(data: dict[str, Any], proj: dict) -> dict[str, Any]:
+    """D's winter closures when a winter frame can only match summer (``min_gap_frames`` 395 of the
+    417 places): how many, how many correct, and which intervals the wrong ones went to (their
+    union's size |Y_k| and frame count; a single frame has ~512 cells)."""
+    from neoslam_stream.datasets.nordland import spatial_view_runs
+
+    bits, sdr = nordland_sdrs(proj, data)
+    ids, n = np.asarray(data["ids"]), data["n"]
+    svc = [dict(_SVC, theta_sigma=None, sequence={"min_gap_frames": 395})]
+    ((params, _, out, res, _),) = list(spatial_view_runs(bits, sdr, list(ids), n, svc, NORDLAND["tolerance"]))
+    members: dict[int, list[int]] = {}
+    for i, m in enumerate(out):
+        members.setdefault(int(m["interval"]), []).append(i)
+    created = {}
+    for i in range(n):
+        created.setdefault(int(out[i]["id"]), int(ids[i]))
+    wrong: dict[int, int] = {}
+    for j in range(n, len(out)):
+        if out[j]["is_loop_closure"] and abs(created.get(int(out[j]["id"]), -10**9) - ids[j - n]) > NORDLAND["tolerance"]:
+            k = int(out[j]["best_interval"])
+            wrong[k] = wrong.get(k, 0) + 1
+    top = sorted(wrong.items(), key=lambda kv: -kv[1])[:5]
+    # the same threshold on single frames: winter frames whose best summer frame overlaps > theta_sigma
+    dense = np.zeros((len(sdr), int(max(c.max() for c in sdr)) + 1), np.float32)
+    for i, c in enumerate(sdr):
+        dense[i, c] = 1.0
+    sim = dense[n:] @ dense[:n].T
+    above = sim.max(1) > params["theta_sigma"]
+    right = np.abs(ids[sim.argmax(1)] - ids) <= NORDLAND["tolerance"]
+    return {"proj": proj, "svc": params, **res,
+            "single_frames_above_theta": int(above.sum()), "single_frames_above_theta_correct": int((above & right).sum()),
+            "wrong_by_interval": [{"interval": k, "wrong_closures": c, "frames": len(members[k]),
+                                   "union_cells": len(np.unique(np.concatenate([sdr[i] for i in members[k]])))}
+                                  for k, c in top],
+            "summer_intervals": sum(1 for v in members.values() if v[0] < n),
+            "summer_intervals_of_several_frames": sum(1 for v in members.values() if v[0] < n and len(v) > 1)}
+
+
 def nordland_ceiling(data: dict[str, Any]) -> dict[str, Any]:
     """Where Nordland's place information is lost: each winter frame's best match by similarity
     alone (A: cosine of the features; B: overlap of the bits, raw and centred), against the summer
@@ -246,6 +284,7 @@ def nordland_ceiling(data: dict[str, Any]) -> dict[str, Any]:
         for i, b in enumerate(bits):
             dense[i, b] = 1.0
         res[name] = both(dense[n:] @ dense.T)
+    res["d_summer_only"] = nordland_d_closures(data, {"centre_window": 30})
     res["about"] = ("winter frame -> best match by similarity alone; summer_only: the summer frames; stream: "
                     "what D searches (summer + earlier winter frames, less the last 3); correct: a summer frame "
                     f"within {NORDLAND['tolerance']} source frames; precision at recall 0.2 ranking the frames by "

@@ -302,7 +302,10 @@ NORDLAND_LEVERS = [
         dict(_SVC, theta_sigma=None, sequence={"length": 3, **_SEQ, "min_gap_frames": 200}),
         # 395 of the 417 places: a winter frame can only match summer frames (the place's own
         # summer frame lies 417 frames back), i.e. D against the summer-only database
-        dict(_SVC, theta_sigma=None, sequence={"min_gap_frames": 395})])
+        dict(_SVC, theta_sigma=None, sequence={"min_gap_frames": 395})]
+     # theta_sigma scaled to the matched union's size (spatial_view.union_normalised)
+     + [dict(_SVC, theta_sigma=None, union_normalised=True, **({"sequence": {"min_gap_frames": g}} if g else {}))
+        for g in (0, 200, 395)])
     for proj in ({}, {"centre_window": 100}, {"centre_window": 30})]
 
 #: TUC corridor levers: (name, pose-cell overrides, experience-map overrides, sequence filter)
@@ -464,6 +467,11 @@ LEVERS: dict[str, dict] = {
                             ("loops1000", {}, {"exp_loops": 1000}),
                             ("loops300_robust1", {}, {"exp_loops": 300, "exp_robust_m": 1.0}),
                             ("robust1", {}, {"exp_robust_m": 1.0}))},
+    "union_normalised": {"spatial_view": {"union_normalised": True}},
+    "default_union_normalised": {"spatial_view": {"sequence": {"length": 10, "max_step": 2.0, "slack": 4},
+                                                  "union_normalised": True},
+                                 "pose_cells": {"odometry_bias": {"enabled": True}},
+                                 "experience_map": {"exp_loops": 300}},
     "seq10_bias_templates": {"spatial_view": {"sequence": {"length": 10, "max_step": 2.0, "slack": 4}},
                              "pose_cells": {"odometry_bias": {"enabled": True, "samples_from": "templates"}}},
     **{f"seq10_bias_gate_{r}_{c}": {"spatial_view": {"sequence": {"length": 10, "max_step": 2.0, "slack": 4}},

@@ -82,6 +82,27 @@ def test_score_must_exceed_theta_sigma_strictly():
     assert not r["is_loop_closure"]
 
 
+def test_union_normalised_threshold_scales_theta_sigma_to_the_union():
+    # interval 0 merges two frames: Y_0 = {0..5} | {0..3, 6, 7} = {0..7}, 8 cells; a query sharing 5
+    # of its 6 cells with Y_0 scores 5 > theta_sigma 4 (the paper's rule: a closure), but
+    # normalised 5 * 6 / max(8, 6) = 3.75 is not > 4; onto a single-frame interval (|Y| = |y| = 6)
+    # the same score 5 stays a closure, so the scaling changes nothing there
+    query = sdr(0, 1, 2, 3, 4, 100)
+    for normalised, closure in ((False, True), (True, False)):
+        c = svc(union_normalised=normalised)
+        c.compute(sdr(0, 1, 2, 3, 4, 5))
+        c.compute(sdr(0, 1, 2, 3, 6, 7))  # alpha 4 >= 3: extends interval 0
+        c.compute(block(5))
+        assert c.n_intervals == 2 and len(c.unions[0]) == 8
+        r = c.compute(query)
+        assert r["best_score"] == 5 and r["is_loop_closure"] is closure
+    c = svc(union_normalised=True)
+    c.compute(sdr(0, 1, 2, 3, 4, 5))
+    c.compute(block(5))
+    r = c.compute(query)
+    assert r["best_score"] == 5 and r["is_loop_closure"] and r["best_interval"] == 0
+
+
 def test_ties_go_to_the_lowest_interval():
     c = svc(theta_alpha=100)  # never extend
     c.compute(block(0))

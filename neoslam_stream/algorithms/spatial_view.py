@@ -85,6 +85,11 @@ class SpatialViewConfig(BaseModel):
     #: issue #14: accept a closure only after a run of consistent candidates (algorithms.sequence;
     #: the default ``length: 0`` keeps the paper's rule)
     sequence: SequenceConfig = Field(default_factory=SequenceConfig)
+    #: issue #14: a closure onto interval k* needs s_k* |y_t| / max(|Y_k*|, |y_t|) > theta_sigma,
+    #: i.e. theta_sigma scaled to the union's size (a union of several frames overlaps every SDR
+    #: more: on Nordland one 4-frame interval of 820 cells took 101 of 115 wrong closures). False:
+    #: the paper's s_k* > theta_sigma
+    union_normalised: bool = False
 
     @field_validator("exclude_recent_intervals")
     @classmethod
@@ -836,6 +841,8 @@ class SpatialViewCells:
                 best, best_score, second, second_score = self._top2_bounded(y, limit)
         self.runner_up = (second, second_score)
         loop = best >= 0 and best_score > self.theta_sigma
+        if loop and self.config.union_normalised:
+            loop = best_score * len(y) > self.theta_sigma * max(len(self.unions[best]), len(y))
         if self.sequence.enabled:  # a candidate is a closure only within a consistent sequence
             loop = self.sequence.check(self.t, self.interval_start[best] if loop else -1)
         if loop:

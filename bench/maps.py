@@ -220,7 +220,7 @@ def nordland_d_closures(data: dict[str, Any], proj: dict) -> dict[str, Any]:
     """D's winter closures when a winter frame can only match summer (``min_gap_frames`` 395 of the
     417 places): how many, how many correct, and which intervals the wrong ones went to (their
     union's size |Y_k| and frame count; a single frame has ~512 cells)."""
-    from neoslam_stream.datasets.nordland import spatial_view_runs
+    from neoslam_stream.datasets.nordland import overlaps, spatial_view_runs
 
     bits, sdr = nordland_sdrs(proj, data)
     ids, n = np.asarray(data["ids"]), data["n"]
@@ -239,10 +239,7 @@ def nordland_d_closures(data: dict[str, Any], proj: dict) -> dict[str, Any]:
             wrong[k] = wrong.get(k, 0) + 1
     top = sorted(wrong.items(), key=lambda kv: -kv[1])[:5]
     # the same threshold on single frames: winter frames whose best summer frame overlaps > theta_sigma
-    dense = np.zeros((len(sdr), int(max(c.max() for c in sdr)) + 1), np.float32)
-    for i, c in enumerate(sdr):
-        dense[i, c] = 1.0
-    sim = dense[n:] @ dense[:n].T
+    sim = overlaps(sdr, int(max(c.max() for c in sdr)) + 1)[n:, :n]
     above = sim.max(1) > params["theta_sigma"]
     right = np.abs(ids[sim.argmax(1)] - ids) <= NORDLAND["tolerance"]
     return {"proj": proj, "svc": params, **res,
@@ -260,6 +257,8 @@ def nordland_ceiling(data: dict[str, Any]) -> dict[str, Any]:
     frames only and against what D searches in a stream (summer and the earlier winter frames, less
     the last 3); a match is correct when it is a summer frame within the tolerance (a winter frame is
     a template the winter pass created: wrong)."""
+    from neoslam_stream.datasets.nordland import overlaps
+
     feats, ids, n = data["features"], np.asarray(data["ids"]), data["n"]
     m = len(feats) - n
 
@@ -280,10 +279,7 @@ def nordland_ceiling(data: dict[str, Any]) -> dict[str, Any]:
     for name, proj in (("B_bits", {}), ("B_bits_centred", {"centre_window": 100}),
                        ("B_bits_centred_30", {"centre_window": 30})):
         bits, _ = nordland_sdrs(proj, data)
-        dense = np.zeros((len(bits), 2048), np.float32)
-        for i, b in enumerate(bits):
-            dense[i, b] = 1.0
-        res[name] = both(dense[n:] @ dense.T)
+        res[name] = both(overlaps(bits)[n:].astype(np.float64))
     res["d_summer_only"] = nordland_d_closures(data, {"centre_window": 30})
     res["about"] = ("winter frame -> best match by similarity alone; summer_only: the summer frames; stream: "
                     "what D searches (summer + earlier winter frames, less the last 3); correct: a summer frame "

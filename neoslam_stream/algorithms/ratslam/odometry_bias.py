@@ -87,7 +87,6 @@ class YawBiasEstimator:
         self.t = 0.0
         #: experience (or template, with samples_from templates) id -> (H, t) at its creation
         self.born: dict[int, tuple[float, float]] = {}
-        self._period = math.pi if cfg.bidirectional else 2 * math.pi
         self.last_template = -1
         self._sum_dg = self._sum_gg = 0.0
         self._last_sample_t = 0.0
@@ -147,10 +146,8 @@ class YawBiasEstimator:
         self.bias = self._sum_dg / self._sum_gg
 
     def _wrap(self, a: float) -> float:
-        """a wrapped into [-period/2, period/2): clip_pi's rule, modulo pi when bidirectional."""
-        if self._period == 2 * math.pi:
-            return clip_pi(a)
-        return (a + math.pi / 2) % math.pi - math.pi / 2
+        """a wrapped into (-pi, pi] (clip_pi), or into (-pi/2, pi/2] when bidirectional (modulo pi)."""
+        return clip_pi(2 * a) / 2 if self.config.bidirectional else clip_pi(a)
 
     def new_session(self) -> None:
         """A new session of a loaded map: the robot's heading is unrelated to the raw heading of the

@@ -146,3 +146,26 @@ def test_real_ground_truth_against_itself_moved(tmp_path):
     res = evaluate_run(tmp_path)
     assert res["trajectory_ape"]["max_m"] < 1e-5
     assert (tmp_path / "map.png").stat().st_size > 1000 and (tmp_path / "evaluation.json").exists()
+
+
+def test_online_floor_is_odometry_until_the_first_return_then_exact():
+    from neoslam_stream.evaluation import ape, online_floor
+
+    # out and back along x: x = 0..9, then 9..0, one frame per second; odometry doubles every
+    # distance and reports its poses in its own frame: rotated by 90 degrees and shifted
+    t = np.arange(20.0)
+    x = np.r_[np.arange(10.0), np.arange(9.0, -1.0, -1.0)]
+    gt = np.c_[t, x, np.zeros(20), np.zeros(20)]
+    odo = np.c_[t, np.full(20, 5.0), 2 * x - 3.0, np.full(20, np.pi / 2)]
+    r = online_floor(gt, odo, radius=0.5, min_gap_s=5.0)
+    # frame 12 (x = 7) is the first within 0.5 m of a frame at least 5 s older (frame 7); frames 10
+    # and 11 (x = 9, 8) only have their own positions 1-3 s back
+    assert (r["first_return_frame"], r["first_return_s"], r["frames_before_first_return"]) == (12, 12.0, 0.6)
+    # the floor trajectory: odometry (2x from the true start, after the rigid start alignment)
+    # before frame 12, the truth from there on
+    est = np.c_[np.where(np.arange(20) < 12, np.r_[2 * np.arange(10.0), 18.0, 16.0, np.zeros(8)], x), np.zeros(20)]
+    assert r["ape_mean_m"] == pytest.approx(ape(est, gt[:, 1:3])["mean_m"])
+    # exact odometry: no floor at all; no return within the run: the whole run is dead reckoning
+    assert online_floor(gt, gt, radius=0.5, min_gap_s=5.0)["ape_mean_m"] == pytest.approx(0.0, abs=1e-12)
+    never = online_floor(gt, odo, radius=0.5, min_gap_s=50.0)
+    assert never["first_return_frame"] == 20 and never["first_return_s"] is None

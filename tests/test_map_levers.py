@@ -336,3 +336,23 @@ def test_pose_cell_node_feeds_every_template_to_the_bias_before_the_gate():
     step(0, 0.1, 0.0, 0.0)
     assert node.gate.refused == 1
     assert node.bias.samples == 1 and node.bias.bias == pytest.approx(1.2 / 60.2, rel=1e-6)
+
+
+def test_nordland_protocol_resolves_the_gap_and_the_calibration_quantile():
+    from neoslam_stream.datasets.nordland import resolve_params
+
+    # four summer frames of places 0, 100, 400, 700 (tolerance 150): far-apart pairs are every pair
+    # but (0, 100); their overlaps are 1 (0-400), 2 (0-700), 3 (100-400), 4 (100-700), 5 (400-700)
+    bits = [np.array([0, 1, 2, 3, 4, 5, 50]), np.array([0, 10, 11, 13, 14, 15, 16]),
+            np.array([0, 10, 11, 12, 20, 21, 22]), np.array([0, 1, 10, 11, 12, 13, 20])]
+    ids = [0, 100, 400, 700]
+    o = np.array([[len(np.intersect1d(a, b)) for b in bits] for a in bits])
+    far = [o[i, j] for i in range(4) for j in range(4) if i != j and abs(ids[i] - ids[j]) > 150]
+    assert sorted(far) == [1, 1, 2, 2, 3, 3, 4, 4, 5, 5]
+    p = resolve_params({"theta_sigma": None, "calibration_quantile": 50.0, "min_gap_fraction": 0.5,
+                        "sequence": {"length": 1}}, bits, ids, 4, 150, 99.9)
+    # the median of the ten overlaps is 3; half of the 4 places per traversal is a 2-frame gap
+    assert p == {"theta_sigma": 3, "sequence": {"length": 1, "min_gap_frames": 2}}
+    # without the deferred keys: the default quantile (99.9: between the two largest, both 5), no gap
+    assert resolve_params({"theta_sigma": None}, bits, ids, 4, 150, 99.9) == {"theta_sigma": 5}
+    assert resolve_params({"theta_sigma": 7}, bits, ids, 4, 150, 99.9) == {"theta_sigma": 7}

@@ -88,19 +88,54 @@ def test_union_normalised_threshold_scales_theta_sigma_to_the_union():
     # normalised 5 * 6 / max(8, 6) = 3.75 is not > 4; onto a single-frame interval (|Y| = |y| = 6)
     # the same score 5 stays a closure, so the scaling changes nothing there
     query = sdr(0, 1, 2, 3, 4, 100)
-    for normalised, closure in ((False, True), (True, False)):
+    for normalised, closure, score in ((False, True, 5), (True, False, 3.75)):
         c = svc(union_normalised=normalised)
         c.compute(sdr(0, 1, 2, 3, 4, 5))
         c.compute(sdr(0, 1, 2, 3, 6, 7))  # alpha 4 >= 3: extends interval 0
         c.compute(block(5))
         assert c.n_intervals == 2 and len(c.unions[0]) == 8
         r = c.compute(query)
-        assert r["best_score"] == 5 and r["is_loop_closure"] is closure
+        assert r["best_score"] == score and r["is_loop_closure"] is closure
     c = svc(union_normalised=True)
     c.compute(sdr(0, 1, 2, 3, 4, 5))
     c.compute(block(5))
     r = c.compute(query)
     assert r["best_score"] == 5 and r["is_loop_closure"] and r["best_interval"] == 0
+
+
+def test_union_normalised_ranks_a_single_frame_above_a_larger_union():
+    # the first three frames share >= 3 cells (theta_alpha) with interval 0: Y_0 = {0..5, 8, 9} (8
+    # cells); the fourth shares 5 but interval 0 already spans theta_rho + 1 = 3 frames, so it opens
+    # interval 1 = {0, 1, 2, 3, 4, 20}; two disjoint frames open intervals 2 and 3. For the
+    # query {0, 1, 2, 3, 4, 100}: raw s_0 = 5, s_1 = 5 (a tie: the paper picks interval 0);
+    # normalised s_0 = 5 * 6 / 8 = 3.75, s_1 = 5 * 6 / 6 = 5: interval 1 wins, runner-up interval 0
+    frames = [sdr(0, 1, 2, 3, 4, 5), sdr(0, 1, 2, 3, 8, 9), sdr(0, 1, 2, 8, 9, 5), sdr(0, 1, 2, 3, 4, 20),
+              block(10), block(11)]
+    query = sdr(0, 1, 2, 3, 4, 100)
+    for normalised, best, second in ((False, (0, 5), (1, 5)), (True, (1, 5.0), (0, 3.75))):
+        c = svc(theta_sigma=3, union_normalised=normalised)
+        for f in frames:
+            c.compute(f)
+        assert [len(u) for u in c.unions[:2]] == [8, 6] and c.n_intervals == 4
+        r = c.compute(query)
+        assert (r["best_interval"], r["best_score"]) == best and r["is_loop_closure"]
+        assert (r["second_interval"], r["second_score"]) == second
+
+
+@pytest.mark.parametrize("normalised", [False, True])
+def test_theta_margin_refuses_a_winner_close_to_its_runner_up(normalised):
+    # two single-frame intervals: the query shares 6 cells with interval 0 and 4 with interval 1,
+    # so the winner's margin is 6 - 4 = 2 (normalised the same: every |Y| = |y| = 8)
+    frames = [sdr(0, 1, 2, 3, 4, 5, 6, 7), sdr(0, 1, 2, 3, 50, 51, 52, 53), block(20, 8)]
+    query = sdr(0, 1, 2, 3, 4, 5, 98, 99)
+    for margin, closure in ((0, True), (2, True), (2.5, False), (3, False)):
+        c = svc(theta_alpha=5, theta_margin=margin, union_normalised=normalised)
+        for f in frames:
+            c.compute(f)
+        assert c.n_intervals == 3
+        r = c.compute(query)
+        assert (r["best_score"], r["second_interval"], r["second_score"]) == (6, 1, 4)
+        assert r["is_loop_closure"] is closure and r["best_interval"] == (0 if closure else -1), margin
 
 
 def test_ties_go_to_the_lowest_interval():

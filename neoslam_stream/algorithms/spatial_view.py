@@ -13,6 +13,11 @@ The paper's formulation, per winner-cell SDR y_t:
    interval was opened, a new template id (consecutive from 0); else the current template.
    Each interval keeps the template it got when it was opened.
 
+Issue #14's acceptance rules (all off in the paper profile): ``sequence`` (a run of consistent
+candidates, a minimum gap: algorithms/sequence.py), ``theta_margin`` (a closure also needs
+s_k* - s_k2 >= theta_margin over the runner-up k2) and ``union_normalised`` (every s_k replaced by
+s_k |y_t| / max(|Y_k|, |y_t|) for ranking, threshold and margin, from the exhaustive count).
+
 Differences from the ROS 2 NeoSLAM on purpose: interval k's template is interval k's (the ROS 2
 code returns the template of the interval *before* the match, because interval 0 never gets a map
 row), and the first frame opens interval 0 like any other.
@@ -85,11 +90,16 @@ class SpatialViewConfig(BaseModel):
     #: issue #14: accept a closure only after a run of consistent candidates (algorithms.sequence;
     #: the default ``length: 0`` keeps the paper's rule)
     sequence: SequenceConfig = Field(default_factory=SequenceConfig)
-    #: issue #14: a closure onto interval k* needs s_k* |y_t| / max(|Y_k*|, |y_t|) > theta_sigma,
-    #: i.e. theta_sigma scaled to the union's size (a union of several frames overlaps every SDR
-    #: more: on Nordland one 4-frame interval of 820 cells took 101 of 115 wrong closures). False:
-    #: the paper's s_k* > theta_sigma
+    #: issue #14: candidates are ranked and thresholded by the normalised score
+    #: s_k |y_t| / max(|Y_k|, |y_t|), i.e. theta_sigma scaled to the union's size (a union of
+    #: several frames overlaps every SDR more: on Nordland one 4-frame interval of 820 cells took
+    #: 101 of 115 wrong closures). Every candidate is scored then (the exhaustive count, not the
+    #: bounded search). False: the paper's s_k > theta_sigma
     union_normalised: bool = False
+    #: issue #14: a closure also needs a margin over the runner-up, score(k*) - score(k2) >=
+    #: theta_margin (the scores are the normalised ones when ``union_normalised``): a place that
+    #: looks like many others is refused. 0: off (the paper's rule)
+    theta_margin: float = Field(0.0, ge=0)
 
     @field_validator("exclude_recent_intervals")
     @classmethod
@@ -835,14 +845,16 @@ class SpatialViewCells:
         best, best_score = -1, 0
         second, second_score = -1, 0
         if limit > 0:
-            if self.exhaustive:
+            if self.config.union_normalised:
+                best, best_score, second, second_score = self._top2_normalised(y, limit)
+            elif self.exhaustive:
                 best, best_score, second, second_score = self._top2_exhaustive(y, limit)
             else:
                 best, best_score, second, second_score = self._top2_bounded(y, limit)
         self.runner_up = (second, second_score)
         loop = best >= 0 and best_score > self.theta_sigma
-        if loop and self.config.union_normalised:
-            loop = best_score * len(y) > self.theta_sigma * max(len(self.unions[best]), len(y))
+        if loop and self.config.theta_margin:  # the runner-up's score is 0 when there is none
+            loop = best_score - second_score >= self.config.theta_margin
         if self.sequence.enabled:  # a candidate is a closure only within a consistent sequence
             loop = self.sequence.check(self.t, self.interval_start[best] if loop else -1)
         if loop:
@@ -860,8 +872,9 @@ class SpatialViewCells:
                 "best_score": best_score, "relative_rad": 0.0, "interval": self.n_intervals - 1,
                 "second_interval": second, "second_score": second_score}
 
-    def _top2_exhaustive(self, y: np.ndarray, limit: int) -> tuple[int, int, int, int]:
-        """Every s_k from the whole index (O(sum of posting lengths)): the reference."""
+    def _all_scores(self, y: np.ndarray) -> np.ndarray:
+        """s_k = |Y_k & y_t| of every interval, from the whole index (O(sum of posting lengths));
+        a scratch array, zeroed again at the next call."""
         k_all = self.n_intervals
         if self._scores.shape[0] < k_all:
             self._scores = np.zeros(max(k_all, 2 * self._scores.shape[0]), dtype=np.int32)
@@ -872,7 +885,25 @@ class SpatialViewCells:
             _scores(*self._frozen[0], y, scores)
         if self._linked_postings:
             _scores(self._pool, self._next, self._head, self._tail, self._fill, y, scores)
-        cand = scores[:limit]
+        return scores
+
+    def _top2_normalised(self, y: np.ndarray, limit: int) -> tuple[int, float, int, float]:
+        """The top two candidates k < limit by s_k |y_t| / max(|Y_k|, |y_t|) (``union_normalised``;
+        ties: lowest index), with their normalised scores."""
+        n = len(y)
+        norm = self._all_scores(y)[:limit] * (n / np.maximum(np.diff(self._u_ptr[:limit + 1]), n))
+        best = int(np.argmax(norm))  # first maximum = lowest index
+        best_score = float(norm[best])
+        second, second_score = -1, 0.0
+        if limit > 1:
+            norm[best] = -1.0
+            second = int(np.argmax(norm))
+            second_score = float(norm[second])
+        return best, best_score, second, second_score
+
+    def _top2_exhaustive(self, y: np.ndarray, limit: int) -> tuple[int, int, int, int]:
+        """Every s_k from the whole index (O(sum of posting lengths)): the reference."""
+        cand = self._all_scores(y)[:limit]
         best = int(np.argmax(cand))  # first maximum = lowest index
         best_score = int(cand[best])
         second, second_score = -1, 0

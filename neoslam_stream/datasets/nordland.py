@@ -23,6 +23,7 @@ Protocol choices (documented in docs/frontend.md):
 
 from __future__ import annotations
 
+from functools import lru_cache
 from typing import Any
 
 import cv2
@@ -33,10 +34,11 @@ from . import data_root
 DATA = data_root() / "nordland_64x32"
 
 
-def load_frames(step: int, limit: int | None = None,
-                min_std: float | None = None) -> tuple[list[np.ndarray], list[np.ndarray], list[int]]:
-    """RGB summer and winter frames of every step-th place, and the places' source frame numbers."""
-    names = sorted(p.name for p in (DATA / "summer").glob("images-*.png"))[::step]
+def load_frames(step: int, limit: int | None = None, min_std: float | None = None,
+                offset: int = 0) -> tuple[list[np.ndarray], list[np.ndarray], list[int]]:
+    """RGB summer and winter frames of every step-th place from the ``offset``-th on, and the places'
+    source frame numbers (``offset`` 1 .. step-1 gives a subset disjoint from offset 0's)."""
+    names = sorted(p.name for p in (DATA / "summer").glob("images-*.png"))[offset::step]
     if limit:
         names = names[:limit]
     summer, winter, ids = [], [], []
@@ -94,41 +96,88 @@ def evaluate(template_ids: list[int], loops: list[bool], source_ids: list[int], 
             "recall": correct / n_winter if n_winter else 0.0}
 
 
+#: issue #14: how the stream reaches precision >= 0.9 at recall >= 0.2 (docs/mapping.md). B centres
+#: the features over 30 frames; D ranks the intervals by the union-normalised score, needs a margin
+#: of 5 over the runner-up and one consistent previous frame, and searches only places seen at least
+#: 95 % of a traversal ago (``min_gap_fraction``: the database without the current traversal);
+#: theta_sigma is the 98th percentile of the overlaps between summer frames of different places.
+#: Chosen on the validation subset (``offset`` 4: other thumbnails of the same route), measured on
+#: the test protocol's subset (offset 0) by ``bench/maps.py --nordland-target``.
+MAP_SETTINGS: dict[str, Any] = {
+    "centre_window": 30,
+    "spatial_view": {"theta_alpha": 384, "theta_rho": 3, "exclude_recent_intervals": 3, "theta_sigma": None,
+                     "calibration_quantile": 98.0, "min_gap_fraction": 0.95, "union_normalised": True,
+                     "theta_margin": 5.0, "sequence": {"length": 1, "max_step": 2.0, "slack": 4}},
+}
+
+
+def resolve_params(params: dict, bits: list[np.ndarray], ids: list[int], n: int, tolerance: int,
+                   quantile: float, calibrated: dict[float, int] | None = None) -> dict:
+    """D's parameters of one set with the protocol's two deferred keys resolved: theta_sigma None
+    -> calibrated on summer's bits at ``calibration_quantile`` (default ``quantile``), and
+    ``min_gap_fraction`` f -> ``sequence.min_gap_frames`` = int(f * n) (n: places per traversal)."""
+    params = dict(params)
+    q = float(params.pop("calibration_quantile", quantile))
+    frac = params.pop("min_gap_fraction", None)
+    if params.get("theta_sigma") is None:
+        cache = calibrated if calibrated is not None else {}
+        if q not in cache:
+            cache[q] = calibrate_theta_sigma(bits[:n], ids, tolerance, q)
+        params["theta_sigma"] = cache[q]
+    if frac is not None:
+        params["sequence"] = {**params.get("sequence", {}), "min_gap_frames": int(frac * n)}
+    return params
+
+
 def spatial_view_runs(bits: list[np.ndarray], sdrs: list[np.ndarray], ids: list[int], n: int,
                       svc_params: list[dict], tolerance: int = 150, quantile: float = 99.9):
     """D once per parameter set over one stream (the ``n`` summer frames, then winter): yields
-    (parameters, the SpatialViewCells, its outputs, :func:`evaluate`'s result, the calibrated
-    theta_sigma). A set whose theta_sigma is None gets the one calibrated on summer's bits."""
+    (parameters, the SpatialViewCells, its outputs, :func:`evaluate`'s result, the theta_sigma
+    calibrated at ``quantile``). A set's deferred keys are resolved by :func:`resolve_params`."""
     from ..algorithms.spatial_view import SpatialViewCells
 
-    calibrated = calibrate_theta_sigma(bits[:n], ids, tolerance, quantile)
+    cache: dict[float, int] = {}
+    calibrated = resolve_params({"theta_sigma": None}, bits, ids, n, tolerance, quantile, cache)["theta_sigma"]
     for params in svc_params:
-        params = dict(params)
-        if params.get("theta_sigma") is None:
-            params["theta_sigma"] = calibrated
+        params = resolve_params(params, bits, ids, n, tolerance, quantile, cache)
         d = SpatialViewCells(**params)
         out = [d.compute(c.astype(np.uint32)) for c in sdrs]
         res = evaluate([int(m["id"]) for m in out], [bool(m["is_loop_closure"]) for m in out], ids, n, tolerance)
         yield params, d, out, res, calibrated
 
 
+@lru_cache(maxsize=1)
+def stream_features(backbone: str, step: int, limit: int | None = None, min_std: float | None = None,
+                    offset: int = 0, seed: int = 42) -> tuple[np.ndarray, tuple[int, ...], int, str]:
+    """A's features of the summer then winter frames (8 at a time, as its node batches them), the
+    places' source frame numbers, the number of summer frames and the backbone that ran. The last
+    stream is kept (up to 0.2 GB): several B settings over one stream run A once."""
+    from ..algorithms.features import VisualFeatureExtractor
+
+    summer, winter, ids = load_frames(step, limit, min_std, offset)
+    fa = VisualFeatureExtractor(backbone=backbone, seed=seed, threads=1)
+    frames = summer + winter
+    feats = np.concatenate([fa.extract_batch(frames[k:k + 8]) for k in range(0, len(frames), 8)])
+    feats.setflags(write=False)
+    return feats, tuple(ids), len(summer), fa.backbone
+
+
 def run_frontend(backbone: str, step: int, svc_params: list[dict], tolerance: int = 150,
                  limit: int | None = None, neocortex: Any = "passthrough", projection: str = "gaussian",
                  seed: int = 42, centre_window: int = 0, min_std: float | None = None,
-                 quantile: float = 99.9) -> list[dict]:
+                 quantile: float = 99.9, offset: int = 0) -> list[dict]:
     """Stream summer then winter through A, B and C once, then D per parameter set.
 
     ``neocortex``: ``"passthrough"`` (cell 0 of each active column), ``"tm"`` (the real
     :class:`~neoslam_stream.algorithms.neocortex.Neocortex` with its defaults), a dict of Neocortex
-    parameters, or a callable bits -> cells.
+    parameters, or a callable bits -> cells. ``offset``: see :func:`load_frames`.
     """
-    from ..algorithms.features import VisualFeatureExtractor
     from ..algorithms.neocortex import Neocortex, NeocortexConfig
     from ..algorithms.projector import BinaryProjector
 
-    summer, winter, ids = load_frames(step, limit, min_std)
-    fa = VisualFeatureExtractor(backbone=backbone, seed=seed, threads=1)
-    pb = BinaryProjector(input_dim=fa.output_dim, projection=projection, seed=seed, centre_window=centre_window)
+    features, ids_t, n, backbone_ran = stream_features(backbone, step, limit, min_std, offset, seed)
+    ids = list(ids_t)
+    pb = BinaryProjector(input_dim=features.shape[1], projection=projection, seed=seed, centre_window=centre_window)
     if isinstance(neocortex, str) and neocortex == "passthrough":
         cells_of = passthrough_neocortex
         nc_name = "passthrough (cell 0 of each active column)"
@@ -140,13 +189,10 @@ def run_frontend(backbone: str, step: int, svc_params: list[dict], tolerance: in
         nc = Neocortex(NeocortexConfig(**(neocortex if isinstance(neocortex, dict) else {})))
         nc_name = f"neocortex (tie_break {nc.config.tie_break})"
         cells_of = nc.compute
-    frames = summer + winter
-    n = len(summer)
     bits: list[np.ndarray] = []
     sdrs: list[np.ndarray] = []
-    for k in range(0, len(frames), 8):
-        feats = fa.extract_batch(frames[k:k + 8])
-        for b in pb.bits_batch(feats):
+    for k in range(0, len(features), 8):
+        for b in pb.bits_batch(features[k:k + 8]):
             bits.append(b)
             sdrs.append(cells_of(b))
     results = []
@@ -159,9 +205,9 @@ def run_frontend(backbone: str, step: int, svc_params: list[dict], tolerance: in
         res["closure_origin"] = {j - n: created.get(template_ids[j], -1) for j in range(n, len(out))
                                  if out[j]["is_loop_closure"]}
         window = sum(1 for i in ids if abs(i - ids[n // 2]) <= tolerance)
-        res.update({"backbone": fa.backbone, "backbone_is_random": fa.backbone == "random_alexnet",
+        res.update({"backbone": backbone_ran, "backbone_is_random": backbone_ran == "random_alexnet",
                     "neocortex": nc_name, "projection": projection, "centre_window": centre_window,
-                    "places": n, "frames": len(frames), "step": step, "min_std": min_std,
+                    "places": n, "frames": len(features), "step": step, "offset": offset, "min_std": min_std,
                     "tolerance": tolerance, "templates": d.n_templates, "svc": params,
                     "theta_sigma_calibrated": calibrated, "calibration_quantile": quantile,
                     "chance_precision": window / n,

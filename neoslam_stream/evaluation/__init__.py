@@ -9,6 +9,11 @@
   place it matched, the true position of its matched frame in ``closures.csv``, or else of the
   frame that created its template, is within ``radius`` metres of the current true position).
 * ``map.png``: experience map, ground truth and odometry in one plot, loop closures marked.
+* Online floor (issue #14): until the robot first returns to a place it has seen, no place
+  recognition can correct its pose, so with wheel odometry its online pose there is at best dead
+  reckoning from the start. :func:`online_floor` is the APE of a trajectory that is the odometry
+  from the true start pose until that first return and exact from then on: what an online pose
+  cannot beat on that run unless the odometry was calibrated beforehand.
 
 ``evaluate_run(run_dir)`` reads a run folder (``trajectory.tum``, ``map.json``, ``templates.csv``,
 ``groundtruth.tum``, ``odometry.tum``) and writes ``evaluation.json`` and ``map.png``;
@@ -25,8 +30,8 @@ import numpy as np
 
 from ..tum import read_tum, write_tum
 
-__all__ = ["ape", "associate", "closures_line", "evaluate_run", "loop_closure_quality", "paper_metric",
-           "read_closures", "read_tum",
+__all__ = ["ape", "associate", "closures_line", "evaluate_run", "loop_closure_quality", "online_floor",
+           "paper_metric", "read_closures", "read_tum",
            "umeyama_se2", "write_tum"]
 
 
@@ -56,6 +61,32 @@ def ape(est_xy: np.ndarray, ref_xy: np.ndarray) -> dict[str, float]:
     R, t = umeyama_se2(est_xy, ref_xy)
     err = np.linalg.norm(est_xy @ R.T + t - ref_xy, axis=1)
     return {"mean_m": float(err.mean()), "rmse_m": float(np.sqrt((err ** 2).mean())), "max_m": float(err.max())}
+
+
+def online_floor(gt: np.ndarray, odometry: np.ndarray, radius: float = 1.0, min_gap_s: float = 30.0) -> dict[str, Any]:
+    """The APE (after SE(2) alignment, as ``trajectory_ape``) of the best online pose a SLAM
+    system can have from odometry alone before its first return: the odometry, moved rigidly so
+    its first pose is the true first pose, until the first frame whose true position lies within
+    ``radius`` of a true position at least ``min_gap_s`` earlier, and the ground truth from that
+    frame on. ``gt`` and ``odometry``: (t, x, y, yaw) rows as :func:`read_tum` gives them, paired by
+    time (:func:`associate`)."""
+    ie, ig = associate(odometry[:, 0], gt[:, 0])
+    odo, ref = odometry[ie], gt[ig]
+    t, p = ref[:, 0], ref[:, 1:3]
+    first = len(ref)
+    for k in range(len(ref)):
+        old = int(np.searchsorted(t, t[k] - min_gap_s, side="right"))  # rows at least min_gap_s earlier
+        if old and (np.linalg.norm(p[:old] - p[k], axis=1) <= radius).any():
+            first = k
+            break
+    turn = ref[0, 3] - odo[0, 3]
+    c, s = np.cos(turn), np.sin(turn)
+    start = (odo[:, 1:3] - odo[0, 1:3]) @ np.array([[c, s], [-s, c]]) + p[0]
+    est = np.where((np.arange(len(ref)) < first)[:, None], start, p)
+    return {"radius_m": radius, "min_gap_s": min_gap_s, "first_return_frame": int(first),
+            "first_return_s": float(t[first] - t[0]) if first < len(ref) else None,
+            "frames_before_first_return": round(first / max(len(ref), 1), 4),
+            "ape_mean_m": ape(est, p)["mean_m"] if len(ref) else None}
 
 
 def paper_metric(est_xy: np.ndarray, ref_xy: np.ndarray) -> dict[str, float]:
@@ -171,6 +202,7 @@ def evaluate_run(run_dir: str | Path, gt_path: str | Path | None = None, radius:
         est, ref = matched(read_tum(odo_file))
         result["odometry_ape"] = ape(est, ref)
         result["odometry_paper"] = paper_metric(est, ref)
+        result["online_floor"] = online_floor(gt, read_tum(odo_file), radius)
     if (run_dir / "templates.csv").exists():
         result["loop_closures"] = loop_closure_quality(run_dir / "templates.csv", gt, radius,
                                                        closures_csv=run_dir / "closures.csv")

@@ -32,7 +32,8 @@ class SpatialViewNode(Node):
         except InvalidInput as exc:
             raise StageInputError(str(exc)) from None
         self.loops += res["is_loop_closure"]
-        # best_score stays an int (an overlap count): templates.csv writes it as the algorithm gave it
+        # best_score as the algorithm gave it (an overlap count; a float when union_normalised):
+        # templates.csv writes it unchanged
         data = {k: res[k] for k in ("id", "is_loop_closure", "best_interval", "relative_rad", "best_score",
                                     "second_interval", "second_score", "interval")}
         return [(VISUAL_TEMPLATE, msg.derive(VISUAL_TEMPLATE, data))]

@@ -15,6 +15,7 @@ import math
 
 import numpy as np
 
+from ..evaluation import best_rotation_2d
 from . import data_root
 
 DATA = data_root() / "tuc_slam_odom_loops"
@@ -110,19 +111,13 @@ def first_point_rotated_error(est: np.ndarray, ref: np.ndarray) -> np.ndarray:
     heading is not the ground truth's x axis), so without the rotation it mostly measures that
     angle."""
     e, r = est - est[0], ref - ref[0]
-    return np.linalg.norm(e @ _best_rotation(e, r).T - r, axis=1)
-
-
-def _best_rotation(e: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """The 2x2 rotation R minimising sum |R e_i - r_i|^2 (Kabsch, no reflection)."""
-    U, _, Vt = np.linalg.svd(e.T @ r)
-    return Vt.T @ np.diag([1.0, np.sign(np.linalg.det(Vt.T @ U.T))]) @ U.T
+    return np.linalg.norm(e @ best_rotation_2d(e, r).T - r, axis=1)
 
 
 def align_rigid_2d(est: np.ndarray, ref: np.ndarray) -> np.ndarray:
     """Least-squares rotation + translation of est (n,2) onto ref (n,2) (Umeyama without scale)."""
     mu_e, mu_r = est.mean(0), ref.mean(0)
-    return (est - mu_e) @ _best_rotation(est - mu_e, ref - mu_r).T + mu_r
+    return (est - mu_e) @ best_rotation_2d(est - mu_e, ref - mu_r).T + mu_r
 
 
 def run(pc_params: dict, em_params: dict, threshold: float = 0.8, min_gap_s: float = 60.0,

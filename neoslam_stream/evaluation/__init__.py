@@ -30,7 +30,7 @@ import numpy as np
 
 from ..tum import read_tum, write_tum
 
-__all__ = ["ape", "associate", "closures_line", "evaluate_run", "loop_closure_quality", "online_floor",
+__all__ = ["ape", "associate", "best_rotation_2d", "closures_line", "evaluate_run", "loop_closure_quality", "online_floor",
            "paper_metric", "read_closures", "read_tum",
            "umeyama_se2", "write_tum"]
 
@@ -45,15 +45,18 @@ def associate(t_est: np.ndarray, t_ref: np.ndarray, max_dt: float = 0.5) -> tupl
     return np.flatnonzero(ok), best[ok]
 
 
+def best_rotation_2d(e: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """The 2x2 rotation R minimising sum |R e_i - r_i|^2 about the origin (Kabsch, no reflection)."""
+    U, _, Vt = np.linalg.svd(e.T @ r)
+    return Vt.T @ np.diag([1.0, np.sign(np.linalg.det(Vt.T @ U.T))]) @ U.T
+
+
 def umeyama_se2(est: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rotation R (2x2) and translation t minimising sum |R est + t - ref|^2."""
     if len(est) < 2:
         return np.eye(2), (ref.mean(0) - est.mean(0)) if len(est) else np.zeros(2)
     mu_e, mu_r = est.mean(0), ref.mean(0)
-    H = (est - mu_e).T @ (ref - mu_r)
-    U, _, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
+    R = best_rotation_2d(est - mu_e, ref - mu_r)
     return R, mu_r - R @ mu_e
 
 

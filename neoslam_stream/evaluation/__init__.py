@@ -66,6 +66,28 @@ def ape(est_xy: np.ndarray, ref_xy: np.ndarray) -> dict[str, float]:
     return {"mean_m": float(err.mean()), "rmse_m": float(np.sqrt((err ** 2).mean())), "max_m": float(err.max())}
 
 
+def _first_return(t: np.ndarray, p: np.ndarray, radius: float, min_gap_s: float) -> int:
+    """The first row k whose position p[k] lies within ``radius`` of a row at least ``min_gap_s``
+    older (t sorted), or len(t). Older rows enter a grid of ``radius`` cells as their time passes,
+    so each row looks at the 3 x 3 cells around it: linear in the rows, as ``neoslam evaluate``
+    runs it on every run, however long."""
+    cell = max(radius, 1e-9)
+    keys = np.floor(p / cell).astype(np.int64)
+    grid: dict[tuple[int, int], list[int]] = {}
+    entered = 0
+    for k in range(len(t)):
+        while entered < k and t[entered] <= t[k] - min_gap_s:
+            grid.setdefault((int(keys[entered, 0]), int(keys[entered, 1])), []).append(entered)
+            entered += 1
+        cx, cy = int(keys[k, 0]), int(keys[k, 1])
+        for dx in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                near = grid.get((cx + dx, cy + dy))
+                if near and (np.linalg.norm(p[near] - p[k], axis=1) <= radius).any():
+                    return k
+    return len(t)
+
+
 def online_floor(gt: np.ndarray, odometry: np.ndarray, radius: float = 1.0, min_gap_s: float = 30.0) -> dict[str, Any]:
     """The APE (after SE(2) alignment, as ``trajectory_ape``) of the best online pose a SLAM
     system can have from odometry alone before its first return: the odometry, moved rigidly so
@@ -76,12 +98,7 @@ def online_floor(gt: np.ndarray, odometry: np.ndarray, radius: float = 1.0, min_
     ie, ig = associate(odometry[:, 0], gt[:, 0])
     odo, ref = odometry[ie], gt[ig]
     t, p = ref[:, 0], ref[:, 1:3]
-    first = len(ref)
-    for k in range(len(ref)):
-        old = int(np.searchsorted(t, t[k] - min_gap_s, side="right"))  # rows at least min_gap_s earlier
-        if old and (np.linalg.norm(p[:old] - p[k], axis=1) <= radius).any():
-            first = k
-            break
+    first = _first_return(t, p, radius, min_gap_s)
     turn = ref[0, 3] - odo[0, 3]
     c, s = np.cos(turn), np.sin(turn)
     start = (odo[:, 1:3] - odo[0, 1:3]) @ np.array([[c, s], [-s, c]]) + p[0]

@@ -180,7 +180,7 @@ def run_nordland(proj: dict, svc_list: list[dict], data: dict[str, Any]) -> list
 def nordland_sdrs(proj: dict, data: dict[str, Any]) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """B's bits (``proj`` on top of the defaults) and the real C's winner cells of every frame, cached."""
     from neoslam_stream.algorithms.neocortex import Neocortex
-    from neoslam_stream.algorithms.projector import BinaryProjector
+    from neoslam_stream.datasets.nordland import stream_codes
 
     feats = data["features"]
     path = CACHE / f"nordland_sdr_{_key([proj, feats.shape, float(feats.sum(dtype=np.float64))])}.npz"
@@ -189,13 +189,7 @@ def nordland_sdrs(proj: dict, data: dict[str, Any]) -> tuple[list[np.ndarray], l
         bits = np.split(z["bits"], z["bptr"][1:-1])
         sdr = np.split(z["cells"], z["cptr"][1:-1])
     else:
-        pb = BinaryProjector(input_dim=feats.shape[1], **{"projection": "gaussian", "seed": 42, **proj})
-        nc = Neocortex()
-        bits, sdr = [], []
-        for k in range(0, len(feats), 8):
-            for b in pb.bits_batch(feats[k:k + 8]):
-                bits.append(np.asarray(b))
-                sdr.append(np.asarray(nc.compute(b)))
+        bits, sdr = stream_codes(feats, Neocortex().compute, **{"projection": "gaussian", "seed": 42, **proj})
         np.savez(path, bits=np.concatenate(bits), bptr=np.cumsum([0] + [len(b) for b in bits]),
                  cells=np.concatenate(sdr), cptr=np.cumsum([0] + [len(c) for c in sdr]))
     return bits, sdr

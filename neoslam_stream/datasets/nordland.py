@@ -162,6 +162,23 @@ def stream_features(backbone: str, step: int, limit: int | None = None, min_std:
     return feats, tuple(ids), len(summer), fa.backbone
 
 
+def stream_codes(features: np.ndarray, cells_of: Any, **projector: Any) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """B's bits and C's cells of every frame: A's ``features`` through a
+    :class:`~neoslam_stream.algorithms.projector.BinaryProjector` (``projector``: its parameters
+    besides the input size) 8 frames at a time, as B's node batches them, each frame's bits then
+    through ``cells_of`` (C)."""
+    from ..algorithms.projector import BinaryProjector
+
+    pb = BinaryProjector(input_dim=features.shape[1], **projector)
+    bits: list[np.ndarray] = []
+    sdrs: list[np.ndarray] = []
+    for k in range(0, len(features), 8):
+        for b in pb.bits_batch(features[k:k + 8]):
+            bits.append(b)
+            sdrs.append(cells_of(b))
+    return bits, sdrs
+
+
 def run_frontend(backbone: str, step: int, svc_params: list[dict], tolerance: int = 150,
                  limit: int | None = None, neocortex: Any = "passthrough", projection: str = "gaussian",
                  seed: int = 42, centre_window: int = 0, min_std: float | None = None,
@@ -173,11 +190,9 @@ def run_frontend(backbone: str, step: int, svc_params: list[dict], tolerance: in
     parameters, or a callable bits -> cells. ``offset``: see :func:`load_frames`.
     """
     from ..algorithms.neocortex import Neocortex, NeocortexConfig
-    from ..algorithms.projector import BinaryProjector
 
     features, ids_t, n, backbone_ran = stream_features(backbone, step, limit, min_std, offset, seed)
     ids = list(ids_t)
-    pb = BinaryProjector(input_dim=features.shape[1], projection=projection, seed=seed, centre_window=centre_window)
     if isinstance(neocortex, str) and neocortex == "passthrough":
         cells_of = passthrough_neocortex
         nc_name = "passthrough (cell 0 of each active column)"
@@ -189,12 +204,7 @@ def run_frontend(backbone: str, step: int, svc_params: list[dict], tolerance: in
         nc = Neocortex(NeocortexConfig(**(neocortex if isinstance(neocortex, dict) else {})))
         nc_name = f"neocortex (tie_break {nc.config.tie_break})"
         cells_of = nc.compute
-    bits: list[np.ndarray] = []
-    sdrs: list[np.ndarray] = []
-    for k in range(0, len(features), 8):
-        for b in pb.bits_batch(features[k:k + 8]):
-            bits.append(b)
-            sdrs.append(cells_of(b))
+    bits, sdrs = stream_codes(features, cells_of, projection=projection, seed=seed, centre_window=centre_window)
     results = []
     for params, d, out, res, calibrated in spatial_view_runs(bits, sdrs, ids, n, svc_params, tolerance, quantile):
         template_ids = [int(m["id"]) for m in out]

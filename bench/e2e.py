@@ -1,22 +1,17 @@
 """End-to-end benchmark: NeoSLAM (default and paper profiles) and RatSLAM on the full synthetic
-route -> bench/results/e2e.json.
+route -> bench/results/e2e.json (discussed in docs/end_to_end.md and docs/mapping.md).
 
-Keys: neoslam_mean_m, neoslam_max_m, ratslam_mean_m, ratslam_max_m (trajectory APE after SE(2)
-alignment), odometry_mean_m, frames, fps_lossless (NeoSLAM, pipeline topology, lossless), plus
-the paper's per-node metric, loop closures and per-stage tau. Issue #14 adds neoslam_precision,
-neoslam_recall, ratslam_precision, ratslam_recall (a closure is correct when the frame where what
-it matched was first seen, closures.csv's matched_frame, lies within ``closure_radius_m`` = 1 m of
-the frame's true position: ``neoslam evaluate``'s rule), {name}_precision_by_template (the same with
-the matched template's first frame, the rule before closures.csv existed),
-neoslam_ape_vs_odometry, {name}_map_trajectory_mean_m (the APE of trajectory_map.tum, every
-frame re-expressed on the final map) and neoslam_map_trajectory_vs_odometry, and the same figures
-of the paper profile under ``paper_neoslam_*`` (``configs/paper.yaml``), and targets_issue14 (the
-targets and which this run reached; the Nordland row, ``targets_issue14.nordland``, is copied from
-maps.json's ``nordland_target``, which ``bench/maps.py --nordland-target`` measures and also writes
-here). Also writes e2e_map.png.
-``--inprocess``: the same nodes in this process (the in-process API's chain: no zenoh, same
-templates and poses as a lossless run), for a loaded machine; e2e.json then says so.
-Run: ``.venv/bin/python bench/e2e.py [--frames N] [--inprocess]``.
+Per run {name} (neoslam, ratslam, paper_neoslam = configs/paper.yaml): {name}_mean_m / _max_m
+(trajectory APE after SE(2) alignment), {name}_map_trajectory_mean_m (trajectory_map.tum: every
+frame re-expressed on the final map), {name}_precision / _recall / _closures (a closure is correct
+when the frame where what it matched was first seen lies within ``closure_radius_m`` = 1 m of the
+frame's true position: ``neoslam evaluate``'s rule), {name}_precision_by_template (the matched
+template's first frame instead); odometry_mean_m, frames, fps_lossless, per-stage tau, the ratios
+to odometry, and ``targets_issue14``: the mapping targets and which this run reached (the Nordland
+row comes from the maps.json beside ``--out``, see ``bench/maps.py --nordland-target``). Also
+writes e2e_map.png. ``--inprocess``: the in-process API's cores instead of the processes of
+``neoslam run`` (no zenoh; the same templates and poses as a lossless run), for a loaded machine.
+Run: ``.venv/bin/python bench/e2e.py [--frames N] [--inprocess] [--out DIR]``.
 """
 
 from __future__ import annotations
@@ -30,23 +25,13 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from neoslam_stream.config import ConfigError, load_config  # noqa: E402
+from neoslam_stream.config import load_config  # noqa: E402
 from neoslam_stream.evaluation import evaluate_run, loop_closure_quality, read_tum  # noqa: E402
 from neoslam_stream.launch import run  # noqa: E402
 
 
-def paper_config(overrides: dict):
-    """The paper profile (configs/paper.yaml), or the settings the default had before issue #14."""
-    try:
-        return load_config("paper", overrides)
-    except ConfigError:
-        from maps import PAPER_FALLBACK, merge
-
-        return load_config(None, merge(PAPER_FALLBACK, overrides))
-
-
 def run_inprocess(cfg, run_dir: Path) -> dict:
-    """Every frame of the config's source through the in-process chain; the run folder as
+    """Every frame of the config's source through the in-process API; the run folder as
     ``neoslam run`` writes it (templates.csv, trajectory.tum, map.json, groundtruth/odometry.tum)."""
     import numpy as np
 
@@ -72,18 +57,18 @@ def run_inprocess(cfg, run_dir: Path) -> dict:
             "backbone": info.get("A", {}).get("backbone")}
 
 
-#: issue #14's synthetic targets for the default NeoSLAM run
-TARGETS_ISSUE14 = {"precision_min": 0.99, "ape_mean_max_m": 0.5, "ape_vs_odometry_max": 0.25, "ape_below_ratslam": True}
+#: the mapping targets of the default NeoSLAM run on the synthetic world
+TARGETS = {"precision_min": 0.99, "ape_mean_max_m": 0.5, "ape_vs_odometry_max": 0.25, "ape_below_ratslam": True}
 
 
-def targets_issue14(res: dict) -> dict:
+def targets_reached(res: dict) -> dict:
     """The targets and which of them this run reached (APE: trajectory.tum's, per frame as online;
     ``ape_mean_on_final_map``: the same bound for trajectory_map.tum, every frame on the final map),
     and ``online_floor`` (evaluation.online_floor: the online APE of odometry until the first return
     to a place, exact from then on)."""
-    t = TARGETS_ISSUE14
+    t = TARGETS
     floor = res.get("neoslam", {}).get("evaluation", {}).get("online_floor", {})
-    return {**t, "online_floor": floor, "reached": {"precision": res["neoslam_precision"] >= t["precision_min"],
+    return {**t, "online_floor": floor, "reached": {"precision": (res["neoslam_precision"] or 0) >= t["precision_min"],
                              "ape_mean": res["neoslam_mean_m"] <= t["ape_mean_max_m"],
                              "ape_mean_on_final_map": res["neoslam_map_trajectory_mean_m"] <= t["ape_mean_max_m"],
                              "ape_vs_odometry": res["neoslam_ape_vs_odometry"] <= t["ape_vs_odometry_max"],
@@ -94,7 +79,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=None, help="default: the whole route (2445 frames)")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results"))
-    ap.add_argument("--inprocess", action="store_true", help="run the nodes in this process (no zenoh)")
+    ap.add_argument("--inprocess", action="store_true", help="the in-process API instead of processes (no zenoh)")
     args = ap.parse_args()
     out = Path(args.out)
     work = out / "e2e_runs"
@@ -105,7 +90,7 @@ def main() -> None:
         if args.frames:
             params["frames"] = args.frames
         over = {"run": {"pipeline": pipeline, "live": False}, "source": {"kind": "synthetic", "params": params}}
-        cfg = paper_config(over) if profile == "paper" else load_config("default", over)
+        cfg = load_config(profile, over)
         if args.inprocess:
             report = run_inprocess(cfg, work / name)
             res[name] = {"report": report}
@@ -142,7 +127,7 @@ def main() -> None:
     res["paper_neoslam_ape_vs_odometry"] = res["paper_neoslam_mean_m"] / res["odometry_mean_m"]
     if "neoslam_map_trajectory_mean_m" in res:
         res["neoslam_map_trajectory_vs_odometry"] = res["neoslam_map_trajectory_mean_m"] / res["odometry_mean_m"]
-    res["targets_issue14"] = targets_issue14(res)
+    res["targets_issue14"] = targets_reached(res)
     maps_json = out / "maps.json"  # the Nordland row comes from bench/maps.py --nordland-target
     if maps_json.exists() and "nordland_target" in (maps := json.loads(maps_json.read_text())):
         from maps import e2e_with_nordland_target

@@ -20,12 +20,12 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from nordland import DATA, run_frontend  # noqa: E402
 from timing import p50  # noqa: E402
 
 from neoslam_stream.algorithms.features import VisualFeatureExtractor  # noqa: E402
 from neoslam_stream.algorithms.projector import BinaryProjector  # noqa: E402
 from neoslam_stream.algorithms.spatial_view import SpatialViewCells  # noqa: E402
-from neoslam_stream.datasets.nordland import DATA, run_frontend  # noqa: E402
 
 
 def bench_a(backbone: str, reps: int, batch: int, threads: int) -> tuple[float, float]:
@@ -114,14 +114,13 @@ def bench_d_compaction(k: int) -> float:
     linked part holds a quarter of the CSR part (the moment it happens in a run)."""
     _rng, unions, svc = _loaded_svc(k)
     for q in range(k // 4 - 1):  # fill the linked part just below the threshold
-        svc._post_bits(unions[q].astype(np.int32), k + q)
+        svc.index.post(unions[q].astype(np.int32), k + q)
     t0 = time.perf_counter()
-    svc.compact()
+    svc.index.compact()
     return (time.perf_counter() - t0) * 1e3
 
 
-SVC = dict(theta_alpha=384, theta_rho=3, exclude_recent_intervals=3)
-#: the protocol of tests/test_frontend_nordland.py (see neoslam_stream/datasets/nordland.py and docs/frontend.md)
+#: the protocol of tests/test_frontend_nordland.py (see bench/nordland.py and docs/frontend.md)
 PROTOCOL = dict(tolerance=150, min_std=10.0)
 
 
@@ -143,7 +142,7 @@ def _agreement(a: dict, b: dict, tolerance: int = 150) -> dict:
 def nordland(step_main: int, step_side: int) -> dict:
     """Loop-closure quality on Nordland: the main configuration and the variants it is compared with."""
     runs: dict = {}
-    cal, paper = {**SVC, "theta_sigma": None}, {**SVC, "theta_sigma": 470}
+    cal, paper = {"theta_sigma": None}, {"theta_sigma": 470}  # D otherwise the paper's (its defaults)
     main_cfg = dict(centre_window=100, **PROTOCOL)
     r = run_frontend("efficientnet_lite0", step_main, [cal, paper], **main_cfg)
     runs["efficientnet_lite0_centred_calibrated"], runs["efficientnet_lite0_centred_sigma470"] = r
@@ -186,7 +185,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "frontend.json"))
     ap.add_argument("--issue16", action="store_true",
-                    help="only the measurements of issue #16 (B storage, D on real SDRs, float16 "
+                    help="only the storage and real-SDR measurements (B storage, D on real SDRs, float16 "
                          "agreement), merged into --out")
     ap.add_argument("--part", choices=["b", "d"],
                     help="with --issue16: only B (storage timings and agreement) or only D (real and random SDRs)")

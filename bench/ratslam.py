@@ -3,12 +3,13 @@
 Keys: pc_ms_11, pc_ms_21, pc_ms_30 (one pose-cell odometry step, p50), lv_ms_100, lv_ms_1000 (one
 local-view match, iRat-sized 60x20 templates, shift +-4), relax_ms_1k, relax_ms_10k (one relaxation
 after an action, exp_loops 20, a chain of experiences with loop links), tuc_odometry_mean_m,
-tuc_map_mean_m (the TU Chemnitz corridor run, see neoslam_stream/datasets/tuc.py; rigid 2-D alignment), plus details
-and ``tuc_first_point`` (the same errors with the NeoSLAM authors' first-point alignment), ``tuc_first_point_rotated``
-(the same with the rotation about the first point fitted);
-tuc_paper_map_mean_m / ``tuc_paper`` (the corridor with TUC_PAPER_SETTINGS, before issue #14's
-levers) and ``tuc_target_issue14`` (map error over odometry's, target <= 0.30).
-Run: ``.venv/bin/python bench/ratslam.py``.
+tuc_map_mean_m (the TU Chemnitz corridor run of bench/tuc_corridor.py with bench/settings/tuc.yaml;
+rigid 2-D alignment), plus details and ``tuc_first_point`` (the same errors with the NeoSLAM
+authors' first-point alignment), ``tuc_first_point_rotated`` (the same with the rotation about the
+first point fitted); tuc_paper_map_mean_m / ``tuc_paper`` (the corridor with
+bench/settings/tuc_paper.yaml, before the mapping levers) and ``tuc_target_issue14`` (map error over
+odometry's, target <= 0.30).
+Run: ``.venv/bin/python bench/ratslam.py [--out FILE]``.
 """
 
 from __future__ import annotations
@@ -22,18 +23,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+import tuc_corridor as tuc  # noqa: E402
+from bench_settings import load_settings  # noqa: E402
 from timing import p50  # noqa: E402
+from tuc_corridor import first_point_error, first_point_rotated_error  # noqa: E402
 
 from neoslam_stream.algorithms.ratslam.experience_map import ExperienceMap  # noqa: E402
 from neoslam_stream.algorithms.ratslam.local_view import LocalViewCells  # noqa: E402
 from neoslam_stream.algorithms.ratslam.pose_cells import PoseCellNetwork  # noqa: E402
-from neoslam_stream.datasets import tuc  # noqa: E402
-from neoslam_stream.datasets.tuc import (  # noqa: E402
-    TUC_PAPER_SETTINGS,
-    TUC_SETTINGS,
-    first_point_error,
-    first_point_rotated_error,
-)
 
 
 def bench_pc(n: int) -> float:
@@ -74,8 +71,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--tuc-only", action="store_true",
                     help="re-measure the TUC figures only; keep the timings already in ratslam.json")
+    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "ratslam.json"))
     args = ap.parse_args()
-    out = Path(__file__).parent / "results" / "ratslam.json"
+    out = Path(args.out)
     res: dict = json.loads(out.read_text()) if args.tuc_only and out.exists() else {}
     for n in () if args.tuc_only else (11, 21, 30):
         res[f"pc_ms_{n}"] = bench_pc(n)
@@ -87,11 +85,12 @@ def main() -> None:
         res[key] = bench_relax(n)
         print(key, res[key], flush=True)
     if tuc.DATA.is_dir():
-        r = tuc.run(TUC_SETTINGS["pc"], TUC_SETTINGS["em"], TUC_SETTINGS["threshold"], TUC_SETTINGS["min_gap_s"])
+        s = load_settings("tuc")
+        r = tuc.run(s["pose_cells"], s["experience_map"], **s["protocol"])
         res.update({"tuc_odometry_mean_m": r["odometry_mean_m"], "tuc_map_mean_m": r["map_mean_m"],
-                    "tuc": {k: v for k, v in r.items() if not hasattr(v, "shape")}, "tuc_settings": TUC_SETTINGS})
+                    "tuc": {k: v for k, v in r.items() if not hasattr(v, "shape")}, "tuc_settings": s})
         res["tuc"]["alignment"] = "rigid 2-D least squares (rotation + translation), the same for both"
-        res["tuc"]["ground_truth"] = "point2 rows only (positions; the angle rows are headings, issue #14)"
+        res["tuc"]["ground_truth"] = "point2 rows only (positions; the angle rows are headings)"
         fo, fm = first_point_error(r["odo"][:, 1:], r["gt"]), first_point_error(r["est"][:, 1:], r["gt"])
         res["tuc_first_point"] = {"odometry_mean_m": float(fo.mean()), "odometry_max_m": float(fo.max()),
                                   "map_mean_m": float(fm.mean()), "map_max_m": float(fm.max()),
@@ -102,9 +101,9 @@ def main() -> None:
             "alignment": "first point subtracted, rotation about it fitted (without it the authors' metric mostly "
                          "measures the angle between the robot's start heading and the ground truth's x axis)"}
         print("tuc", res["tuc"], flush=True)
-        p = tuc.run(TUC_PAPER_SETTINGS["pc"], TUC_PAPER_SETTINGS["em"], TUC_PAPER_SETTINGS["threshold"],
-                    TUC_PAPER_SETTINGS["min_gap_s"])
-        res.update({"tuc_paper_map_mean_m": p["map_mean_m"], "tuc_paper_settings": TUC_PAPER_SETTINGS,
+        sp = load_settings("tuc_paper")
+        p = tuc.run(sp["pose_cells"], sp["experience_map"], **sp["protocol"])
+        res.update({"tuc_paper_map_mean_m": p["map_mean_m"], "tuc_paper_settings": sp,
                     "tuc_paper": {k: v for k, v in p.items() if not hasattr(v, "shape")}})
         pr = first_point_rotated_error(p["est"][:, 1:], p["gt"])
         res["tuc_first_point_rotated"]["paper_map_mean_m"] = float(pr.mean())
@@ -130,7 +129,7 @@ def main() -> None:
             ax.legend(fontsize=8)
             ax.set_title(f"TUC corridor: mean error map {r['map_mean_m']:.1f} m (paper settings "
                          f"{p['map_mean_m']:.1f} m), odometry {r['odometry_mean_m']:.1f} m")
-            fig.savefig(Path(__file__).parent / "results" / "ratslam_tuc.png", dpi=110, bbox_inches="tight")
+            fig.savefig(out.parent / "ratslam_tuc.png", dpi=110, bbox_inches="tight")
         except Exception as exc:  # the plot is a convenience
             print("plot failed:", exc)
     res["pc_cpp_reference_ms"] = {"11": 0.5, "21": 0.8, "30": 1.3}

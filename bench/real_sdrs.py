@@ -1,11 +1,12 @@
-"""Real pipeline data for the front-end bench (#16): features, bits, SDRs and templates of the
-synthetic world recorded from the in-process NeoSLAM front end, and what reduced-precision storage
-(float16, int8) of B's matrix changes on them and on Nordland.
+"""Real pipeline data for the front-end bench: features, bits, SDRs and templates of the synthetic
+world recorded from the NeoSLAM front end, and what reduced-precision storage (float16, int8) of
+B's matrix changes on them and on Nordland.
 
-``record_synthetic`` runs ``NeoSLAM(load_config("default"), backend=False)`` (A, B, C, D exactly as
-``neoslam run`` configures them) over one route of the embedded synthetic world and keeps every
-frame's A features, B bits, C winner cells and D result. The recording is cached in /tmp (A's
-features are 88 kB a frame, too large for bench/results); it is regenerated when absent.
+``record_synthetic`` runs the front end of ``load_config("default")`` (A, B, C, D exactly as
+``neoslam run`` configures them, one frame at a time as the in-process API steps them) over one
+route of the embedded synthetic world and keeps every frame's A features, B bits, C winner cells
+and D result. The recording is cached in /tmp (A's features are 88 kB a frame, too large for
+bench/results); it is regenerated when absent.
 
 Run alone: ``.venv/bin/python bench/real_sdrs.py`` (prints the float16 and int8 agreement figures).
 """
@@ -42,25 +43,27 @@ def record_synthetic(frames: int | None = None, cache: Path | None = CACHE) -> d
             return {"features": z["features"][:t], "bits": [z["bits"][bo[i]:bo[i + 1]] for i in range(t)],
                     "cells": [z["cells"][co[i]:co[i + 1]] for i in range(t)], "ids": z["ids"][:t],
                     "loops": z["loops"][:t], "best_score": z["best_score"][:t], "backbone": str(z["backbone"])}
-    from neoslam_stream import NeoSLAM, load_config
+    from neoslam_stream import load_config
+    from neoslam_stream.algorithms.frontend import FrontEnd
     from neoslam_stream.sources.synthetic import SyntheticWorldSource
 
     cfg = load_config("default")
     src = SyntheticWorldSource(**dict(cfg.source.params or {}), **({"frames": frames} if frames else {}))
-    slam = NeoSLAM(cfg, backend=False)
+    fe = FrontEnd(cfg.front_end())
+    fe.warm_up()
     feats, bits, cells, ids, loops, scores = [], [], [], [], [], []
-    backbone = ""
     for fr in src:
-        res = slam.step(fr.image, stamp=fr.stamp, frame=fr.frame)
-        got = dict(res.outputs)
-        feats.append(np.asarray(got["visual_features"]["features"], np.float32))
-        backbone = str(got["visual_features"]["backbone"])
-        bits.append(np.asarray(got["bin_features"]["bits"], np.uint16))
-        cells.append(np.asarray(got["sdr"]["cells"], np.uint32))
+        if not fe.keep(fr.frame):
+            continue
+        f = fe.features([fr.image])  # A then B of one frame, as the API's step runs them
+        res = fe.step_bits(fe.bits(f)[0])
+        feats.append(np.asarray(f[0], np.float32))
+        bits.append(np.asarray(res.bits, np.uint16))
+        cells.append(np.asarray(res.cells, np.uint32))
         ids.append(int(res.template["id"]))
         loops.append(bool(res.template["is_loop_closure"]))
         scores.append(int(res.template["best_score"]))
-    slam.finish()
+    backbone = fe.extractor.backbone
     out = {"features": np.stack(feats), "bits": bits, "cells": cells, "ids": np.asarray(ids),
            "loops": np.asarray(loops), "best_score": np.asarray(scores), "backbone": backbone}
     if cache is not None:
@@ -81,24 +84,24 @@ def _bit_agreement(a: list[np.ndarray], b: list[np.ndarray]) -> dict[str, float]
 
 def storage_synthetic(rec: dict[str, Any], dtype: str = "float16") -> dict[str, Any]:
     """Replay the recorded A features through B (float32 and the variant ``dtype`` of
-    :data:`VARIANTS`), C and D as configured by ``default``; compare bits and templates with the
-    recorded run."""
-    from neoslam_stream import NeoSLAM, load_config
-    from neoslam_stream.runtime.messages import Message
+    :data:`VARIANTS`), C and D as configured by ``default``, one frame at a time as in a run;
+    compare bits and templates with the recorded run."""
+    from neoslam_stream import load_config
+    from neoslam_stream.algorithms.frontend import FrontEnd
 
     out: dict[str, Any] = {}
     runs = {}
     for storage in ("float32", dtype):
-        cfg = load_config("default", overrides={"projector": VARIANTS[storage]})
-        slam = NeoSLAM(cfg, backend=False)
+        cfg = load_config("default", overrides={"projector": VARIANTS[storage],
+                                                "features": {"backbone": rec["backbone"]}})
+        fe = FrontEnd(cfg.front_end())
+        fe.warm_up()
         bits, ids, loops = [], [], []
-        for i, f in enumerate(rec["features"]):
-            produced = dict((t, m.data) for t, m in slam.chain.push(
-                "visual_features", Message("visual_features", i, float(i), {"features": f, "backbone": rec["backbone"]})))
-            bits.append(np.asarray(produced["bin_features"]["bits"]))
-            ids.append(int(produced["visual_template"]["id"]))
-            loops.append(bool(produced["visual_template"]["is_loop_closure"]))
-        slam.finish()
+        for f in rec["features"]:
+            r = fe.step_bits(fe.bits(f[None])[0])
+            bits.append(np.asarray(r.bits))
+            ids.append(int(r.template["id"]))
+            loops.append(bool(r.template["is_loop_closure"]))
         runs[storage] = (bits, np.asarray(ids), np.asarray(loops))
     b32, i32, l32 = runs["float32"]
     b16, i16, l16 = runs[dtype]
@@ -119,38 +122,25 @@ def storage_nordland(step: int = 4, dtype: str = "float16") -> dict[str, Any]:
     """The main Nordland configuration of bench/frontend.py (EfficientNet-Lite0, centred B with
     window 100, pass-through C, calibrated theta_sigma) with B in float32 and in the variant ``dtype``
     of :data:`VARIANTS`."""
-    from neoslam_stream.algorithms.features import VisualFeatureExtractor
-    from neoslam_stream.algorithms.projector import BinaryProjector
-    from neoslam_stream.algorithms.spatial_view import SpatialViewCells
-    from neoslam_stream.datasets.nordland import (
-        DATA,
-        calibrate_theta_sigma,
-        evaluate,
-        load_frames,
-        passthrough_neocortex,
-    )
+    import nordland
 
-    if not DATA.is_dir():
-        return {"skipped": f"{DATA} not found"}
-    summer, winter, ids = load_frames(step, None, 10.0)
-    frames = summer + winter
-    n = len(summer)
-    fa = VisualFeatureExtractor(backbone="efficientnet_lite0", threads=1)
-    feats = np.concatenate([fa.extract_batch(frames[k:k + 8]) for k in range(0, len(frames), 8)])
-    res: dict[str, Any] = {"places": n, "frames": len(frames), "step": step, "backbone": fa.backbone}
-    bits = {}
+    from neoslam_stream.algorithms.frontend import FrontEnd
+
+    if not nordland.DATA.is_dir():
+        return {"skipped": f"{nordland.DATA} not found"}
+    feats, ids_t, n, backbone = nordland.stream_features("efficientnet_lite0", step, None, 10.0)
+    ids = list(ids_t)
+    res: dict[str, Any] = {"places": n, "frames": len(feats), "step": step, "backbone": backbone}
+    bits, cells = {}, {}
     for storage in ("float32", dtype):
-        pb = BinaryProjector(input_dim=fa.output_dim, centre_window=100, **VARIANTS[storage])
-        bits[storage] = [b for k in range(0, len(feats), 8) for b in pb.bits_batch(feats[k:k + 8])]
+        fe = FrontEnd(features={"backbone": backbone}, projector={"centre_window": 100, **VARIANTS[storage]})
+        bits[storage], cells[storage] = nordland.stream_codes(feats, fe, nordland.passthrough_neocortex)
     res["bits"] = _bit_agreement(bits["float32"], bits[dtype])
     tids = {}
     for storage, b in bits.items():
-        theta = calibrate_theta_sigma(b[:n], ids, 150)
-        d = SpatialViewCells(theta_alpha=384, theta_rho=3, exclude_recent_intervals=3, theta_sigma=theta)
-        out = [d.compute(passthrough_neocortex(x)) for x in b]
+        ((_, d, out, ev, theta),) = nordland.spatial_view_runs(b, cells[storage], ids, n, [{"theta_sigma": None}], 150)
         t = [int(m["id"]) for m in out]
         lo = [bool(m["is_loop_closure"]) for m in out]
-        ev = evaluate(t, lo, ids, n, 150)
         res[storage] = {"theta_sigma_calibrated": theta, "templates": d.n_templates, **ev}
         tids[storage] = (np.asarray(t), np.asarray(lo))
     res["templates_identical"] = bool(np.array_equal(tids["float32"][0], tids[dtype][0]))
@@ -160,6 +150,7 @@ def storage_nordland(step: int = 4, dtype: str = "float16") -> dict[str, Any]:
 
 if __name__ == "__main__":
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
     r = record_synthetic()
     print(json.dumps({dtype: {"synthetic": storage_synthetic(r, dtype), "nordland": storage_nordland(4, dtype)}
                       for dtype in ("float16", "int8", "int8_7bit")}, indent=2))
@@ -219,8 +210,8 @@ def bench_d_real(k_target: int, queries: int, rec: dict[str, Any] | None = None)
     t_exh, t_bnd, t_full, reads, verified, paths = [], [], [], [], [], []
     for i, c in enumerate(stream):
         y = svc._validate(c)
-        limit = svc.n_intervals - svc.omega
-        runs = [("exh", svc._top2_exhaustive), ("bnd", svc._top2_bounded)]
+        limit = svc.n_intervals - svc.config.exclude_recent_intervals
+        runs = [("exh", svc.index.top2_exhaustive), ("bnd", svc.index.top2_bounded)]
         got = {}
         for name, fn in (runs if i % 2 else runs[::-1]):
             t0 = time.perf_counter()
@@ -228,9 +219,9 @@ def bench_d_real(k_target: int, queries: int, rec: dict[str, Any] | None = None)
             (t_exh if name == "exh" else t_bnd).append((time.perf_counter() - t0) * 1e3)
         if got["exh"] != got["bnd"]:
             raise AssertionError(f"bounded search differs from exhaustive scoring at query {i}")
-        reads.append(svc.last_search[0])
-        verified.append(svc.last_search[1])
-        paths.append(svc.last_path)
+        reads.append(svc.index.last_search[0])
+        verified.append(svc.index.last_search[1])
+        paths.append(svc.index.last_path)
         t0 = time.perf_counter()
         svc.compute(c)
         t_full.append((time.perf_counter() - t0) * 1e3)
@@ -239,14 +230,14 @@ def bench_d_real(k_target: int, queries: int, rec: dict[str, Any] | None = None)
         t0 = time.perf_counter()
         svc.compute(c)
         t_stream.append((time.perf_counter() - t0) * 1e3)
-    postings = int(sum(svc._count[svc._validate(c)].sum() for c in stream[:50]) / min(50, len(stream)))
+    postings = int(sum(svc.index._count[svc._validate(c)].sum() for c in stream[:50]) / min(50, len(stream)))
     return {"intervals": svc.n_intervals, "queries": len(stream), "identical": True,
             "load_average_1min_at_end": round(os.getloadavg()[0], 2), "cpu_threads": os.cpu_count(),
             "scoring_ms_exhaustive": float(np.median(t_exh)), "scoring_ms_bounded": float(np.median(t_bnd)),
             "compute_ms_bounded": float(np.median(t_full)), "compute_ms_stream": float(np.median(t_stream)),
             "compute_ms_stream_p95": float(np.percentile(t_stream, 95)),
             "search_path_sliced_fraction": float(np.mean([p == "sliced" for p in paths])),
-            "dense_rows": int(svc._n_dense - 1), "dense_rows_mb": float(svc._dense.nbytes / 1e6),
+            "dense_rows": int(svc.index._n_dense - 1), "dense_rows_mb": float(svc.index._dense.nbytes / 1e6),
             "speedup_scoring": float(np.median(t_exh) / np.median(t_bnd)),
             "postings_read_bounded": float(np.median(reads)), "postings_per_query_all": postings,
             "unions_verified": float(np.median(verified)),

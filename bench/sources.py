@@ -3,7 +3,7 @@
     .venv/bin/python bench/sources.py          # writes bench/results/sources.json
 
 * ``synthetic_render_fps``: frames per second of :meth:`SyntheticWorld.render` at 416x240 along the
-  default route (the issue asks for >= 200 so that the source never limits the pipeline), and
+  default route (it must reach >= 200 so that the source never limits the pipeline), and
   ``synthetic_source_fps`` for whole :class:`SourceFrame`\\ s (render + odometry + ground truth).
 * ``cdr_image``: microseconds per sensor_msgs/msg/Image payload (640x480 rgb8 and 416x240 rgb8)
   for our zero-copy parser and for rosbags' generic CDR deserialiser.

@@ -8,7 +8,7 @@ Inputs (512 active columns of 2048 each step, generated here, seeded):
 
 Per kind: steps/s overall and over the last 500 steps, segments and synapses at the end, peak RSS,
 and the share of winners that are cell 0 / the column's most frequent winner (sequence context).
-Reference, htm.core C++ on this kind of machine (median steps/s): repeat 171, route 90, random 83.
+Reference: htm.core C++ on this kind of machine (``HTM_CORE_MEDIAN``; docs/temporal_memory.md).
 Run: ``.venv/bin/python bench/tm.py [--tie-break random]``.
 """
 

@@ -3,16 +3,16 @@
 Layout (one package, three layers):
 
 * ``neoslam_stream.algorithms``: WHAT is computed. Plain classes with explicit pydantic configs,
-  no transport, no processes, no files (A features, B projector, C neocortex / Temporal Memory,
-  D spatial-view cells, RatSLAM). They import nothing of the runtime.
+  no transport, no processes (A features, B projector, C neocortex, D spatial-view cells, RatSLAM),
+  composed into two cores, ``FrontEnd`` (A -> D) and ``BackEnd``. They import nothing of the runtime.
 * ``neoslam_stream.runtime``: HOW data moves and is measured (codec, zenoh bus, workers,
   supervisor, monitor, checkpoints). It knows no algorithm.
 * ``neoslam_stream.nodes``: between them. Each node turns the messages of its typed topics into
-  calls on one algorithm; the recorder node writes the run folder; ``nodes.pipelines`` names
+  calls on the algorithms; the recorder node writes the run folder; ``nodes.pipelines`` names
   which nodes a run hosts.
 
-``NeoSLAM`` / ``RatSLAM`` (``neoslam_stream.api``) host the same nodes in your process;
-``neoslam run`` hosts them in one process per stage.
+``NeoSLAM`` / ``RatSLAM`` (``neoslam_stream.api``) call the two cores in your process, no zenoh;
+``neoslam run`` hosts the nodes in one process per stage.
 """
 
 from __future__ import annotations

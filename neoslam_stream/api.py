@@ -6,11 +6,11 @@
     for image, (v, w, dt) in my_stream:             # HxWx3 uint8 RGB (or HxW grey, or JPEG bytes)
         r = slam.step(image, odometry=(v, w, dt))
         print(r.frame, r.template_id, r.is_loop_closure, r.pose)
-    slam.finish()                                   # flush; writes the run files when run_dir is set
+    slam.finish()                                   # writes the run files when run_dir is set
 
-It hosts exactly the nodes that ``neoslam run`` hosts in its worker processes (``nodes.pipelines``),
-called in sequence in this process: the same code, so the same templates and poses as a lossless
-run of the same frames. Benches, tests and notebooks use it; it needs no zenoh.
+It calls the two cores directly (``algorithms.frontend``, ``algorithms.backend``): the same
+algorithms, in the same order, as the nodes of ``neoslam run``, so the same templates and poses
+as a lossless run of the same frames; the recorder node writes the run folder. No zenoh.
 """
 
 from __future__ import annotations
@@ -22,8 +22,12 @@ from typing import Any
 
 import numpy as np
 
-from .runtime.local import LocalChain
-from .runtime.messages import MAX_FRAME, Message
+from .algorithms.backend import BackEnd, CameraOdometry, MapPose
+from .algorithms.errors import InvalidInput
+from .algorithms.frontend import FrontEnd, FrontEndResult, LocalViewFrontEnd
+from .nodes.camera import camera_pixels, decode_rgb
+from .runtime.messages import MAX_FRAME, Message, validate_data
+from .runtime.node import StageInputError
 
 #: what a step's odometry may be: (vtrans m/s, vrot rad/s, dt s), or a mapping with those keys
 Odometry = tuple[float, float, float] | dict[str, float]
@@ -31,18 +35,18 @@ Odometry = tuple[float, float, float] | dict[str, float]
 
 @dataclass
 class StepResult:
-    """What one camera frame produced. ``template`` is None for a frame removed by ``frame_stride``;
-    ``pose`` (x, y, theta of the experience map) is None while the back end waits for this
-    frame's odometry. ``poses`` lists every pose the step produced (frames that waited included)."""
+    """What one camera frame produced. ``template`` is None for a frame removed by ``frame_stride``
+    (or with the back end alone); ``pose`` (x, y, theta of the experience map) is None without a
+    back end. ``front`` holds NeoSLAM's B bits and C cells of the frame."""
 
     frame: int
     stamp: float
     template: dict[str, Any] | None = None
     pose: np.ndarray | None = None
     exp_id: int | None = None
+    #: (frame, pose) of every pose the step produced
     poses: list[tuple[int, np.ndarray]] = field(default_factory=list)
-    #: every (topic, data) the nodes produced for this step, in order
-    outputs: list[tuple[str, dict[str, Any]]] = field(default_factory=list)
+    front: FrontEndResult | None = None
 
     @property
     def template_id(self) -> int | None:
@@ -65,27 +69,32 @@ class _SLAM:
         templates.csv, trajectory.tum and map.json there at :meth:`finish`. ``backend=False``:
         the front end alone (no odometry needed; results carry templates only)."""
         from .config import load_config
-        from .nodes.pipelines import build_plan
 
         if config is None or isinstance(config, (str, Path)):
             config = load_config(config or "default")
         config = config.model_copy(deep=True)
         config.run.pipeline = self.pipeline
         self.config = config
-        specs = build_plan(config).stages
-        if not backend:
-            specs = [s for s in specs if s.name in self._front_end]
-        self.backend = backend
-        self.wheel_odometry = backend and config.odometry == "wheel"
-        self.chain = LocalChain(specs, run_dir)
+        self.front_end = self._make_front_end(config)
+        self.front_end.warm_up()
+        self.back_end = BackEnd(config.back_end()) if backend else None
+        self.camera_odometry = None
+        if backend and config.odometry == "visual":
+            self.camera_odometry = CameraOdometry(config.visual_odometry)
+        self.recorder = None
+        if self.back_end is not None:
+            self.back_end.warm_up()
+            if run_dir is not None:
+                self.recorder = _recorder(config, run_dir)
         self.frame = -1
+        self.last_stamp = 0.0
+        self.finished = False
 
-    _front_end: tuple[str, ...] = ()
+    def _make_front_end(self, config: Any) -> Any:
+        raise NotImplementedError
 
-    @property
-    def nodes(self) -> dict[str, Any]:
-        """The hosted nodes by name (their algorithm objects: ``nodes["D"].cells`` ...)."""
-        return {n.name: n for n in self.chain.nodes}
+    def _template(self, data: dict[str, Any], frame: int) -> tuple[dict[str, Any] | None, FrontEndResult | None]:
+        raise NotImplementedError
 
     def step(self, image: np.ndarray | bytes, odometry: Odometry | None = None, stamp: float | None = None,
              frame: int | None = None, encoding: str | None = None) -> StepResult:
@@ -96,10 +105,27 @@ class _SLAM:
         dt s), needed by the back end unless the config uses visual odometry. ``stamp``
         (seconds) defaults to the frame number; ``frame`` to the previous frame + 1.
 
-        Bad input raises the node's error (``StageInputError``, ``MessageError``: both
-        ``ValueError``) and uses up the frame number; the next step works normally. Any other
-        exception is a bug in the code, not in the input.
+        Bad input raises a ``ValueError`` naming the cause (``MessageError`` for a malformed
+        image or odometry, ``StageInputError`` for a frame a stage cannot use) and uses up the
+        frame number; the odometry of that frame is still integrated, and the next step works
+        normally. Any other exception is a bug in the code, not in the input.
         """
+        data = _image_data(image, encoding)
+
+        def front(res: StepResult) -> tuple[float, float, float | None] | None:
+            validate_data("image", data)
+            res.template, res.front = self._template(data, res.frame)
+            if self.camera_odometry is not None:
+                return self.camera_odometry.on_frame(camera_pixels(data), res.stamp)
+            return None
+
+        return self._step(front, odometry, stamp, frame)
+
+    def _step(self, front: Any, odometry: Odometry | None, stamp: float | None, frame: int | None) -> StepResult:
+        """One frame: ``front(result)`` fills in its template (and returns the visual odometry, if
+        any); then the back end moves by the frame's odometry."""
+        if self.finished:
+            raise RuntimeError("this instance has finished; build a new one")
         frame = self.frame + 1 if frame is None else int(frame)
         if frame <= self.frame:
             raise ValueError(f"frame {frame} is not after the previous frame {self.frame}")
@@ -107,53 +133,76 @@ class _SLAM:
             raise ValueError(f"frame {frame} does not fit in int64")
         stamp = float(frame if stamp is None else stamp)
         self.frame = frame  # used up even if its input is refused below, like a frame lost on the bus
-        out = []
-        if odometry is not None and self.backend:
-            if isinstance(odometry, dict):
-                v, w, dt = odometry["vtrans"], odometry["vrot"], odometry.get("dt")
-            else:
-                v, w, dt = odometry
-            data = {"vtrans": float(v), "vrot": float(w)}
-            if dt is not None:
-                data["dt"] = float(dt)
-            out += self.chain.push("odom", Message("odom", frame, stamp, data))
-        elif self.wheel_odometry:
-            raise ValueError("this config integrates wheel odometry (odometry: wheel): pass "
-                             "odometry=(vtrans, vrot, dt), use odometry: visual, or backend=False")
-        if isinstance(image, (bytes, bytearray, memoryview)):
-            data = {"compressed": bytes(image)}
-        else:
-            arr = np.asarray(image)
-            data = {"image": arr, "encoding": encoding or ("mono8" if arr.ndim == 2 else "rgb8")}
-        out += self.chain.push("image", Message("image", frame, stamp, data))
-        return self._result(frame, stamp, out)
-
-    def _result(self, frame: int, stamp: float, out: list) -> StepResult:
-        res = StepResult(frame, stamp, outputs=[(t, m.data) for t, m in out])
-        for t, m in out:
-            if t == "visual_template" and m.frame == frame:
-                res.template = dict(m.data)
-            elif t == "experience_map/pose":
-                res.poses.append((m.frame, np.asarray(m.data["pose"])))
-                if m.frame == frame:
-                    res.pose = np.asarray(m.data["pose"])
-                    res.exp_id = m.data.get("exp_id")
+        odo = self._odometry(odometry)
+        res = StepResult(frame, stamp)
+        try:
+            try:
+                odo = front(res) or odo
+            finally:  # the frame's motion happened, whatever its image was
+                if self.back_end is not None and odo is not None:
+                    self._move(res, odo, stamp)
+        except InvalidInput as exc:  # what a stage cannot use, said as a node says it
+            raise StageInputError(str(exc)) from None
         return res
 
-    def finish(self) -> list[tuple[str, dict[str, Any]]]:
-        """End the stream: events still waiting are processed, the map is published and, with a
-        ``run_dir``, the files are written. Returns what that produced."""
-        return [(t, m.data) for t, m in self.chain.finish()]
+    def _odometry(self, odometry: Odometry | None) -> tuple[float, float, float | None] | None:
+        if self.back_end is None or self.camera_odometry is not None:
+            return None
+        if odometry is None:
+            raise ValueError("this config integrates wheel odometry (odometry: wheel): pass "
+                             "odometry=(vtrans, vrot, dt), use odometry: visual, or backend=False")
+        if isinstance(odometry, dict):
+            v, w, dt = odometry["vtrans"], odometry["vrot"], odometry.get("dt")
+        else:
+            v, w, dt = odometry
+        data = {"vtrans": float(v), "vrot": float(w), **({} if dt is None else {"dt": float(dt)})}
+        validate_data("odom", data)
+        return data["vtrans"], data["vrot"], data.get("dt")
+
+    def _move(self, res: StepResult, odo: tuple[float, float, float | None], stamp: float) -> None:
+        """The back end's step: the frame's template (if it has one), then its odometry."""
+        tmpl = res.template
+        p: MapPose = self.back_end.step(None if tmpl is None else int(tmpl["id"]),
+                                        float(tmpl.get("relative_rad", 0.0)) if tmpl else 0.0, *odo, stamp=stamp)
+        res.pose, res.exp_id = p.pose, p.exp_id
+        res.poses.append((res.frame, p.pose))
+        self.last_stamp = stamp
+        if self.recorder is not None:
+            if tmpl is not None:
+                self.recorder.process("visual_template", Message("visual_template", res.frame, stamp, tmpl))
+            self.recorder.process("experience_map/pose", Message(
+                "experience_map/pose", res.frame, stamp, {"pose": p.pose, "exp_id": p.exp_id, "local": p.local}))
+
+    def finish(self) -> dict[str, Any] | None:
+        """End the stream; with a ``run_dir``, write the files. Returns the final map (None
+        without a back end)."""
+        if self.finished or self.back_end is None:
+            self.finished = True
+            return None if self.back_end is None else self.map()
+        self.finished = True
+        export = self.map()
+        if self.recorder is not None:
+            self.recorder.process("experience_map/map", Message(
+                "experience_map/map", max(self.frame, 0), self.last_stamp, {"export": export}))
+            self.recorder.flush()
+            self.recorder.close()
+        return export
 
     def map(self) -> dict[str, Any]:
         """The experience map now: nodes (id, x, y, theta, stamp) and links (map.json's content)."""
-        if "experience_map" not in self.nodes:
+        if self.back_end is None:
             raise ValueError("this instance runs the front end alone (backend=False): it has no map")
-        return self.nodes["experience_map"].em.export()
+        return self.back_end.experience_map.export()
 
     def info(self) -> dict[str, Any]:
-        """Each node's facts (backbone that ran, templates, TM size, experiences...)."""
-        return self.chain.info()
+        """Facts about the cores (backbone that ran, templates, experiences...)."""
+        out: dict[str, Any] = {}
+        if isinstance(self.front_end, FrontEnd) and "extractor" in self.front_end.__dict__:
+            out["A"] = {"backbone": self.front_end.extractor.backbone}
+        if self.back_end is not None:
+            out["pose_cells"] = self.back_end.pose_cells.info()
+            out["experience_map"] = {"experiences": self.back_end.experience_map.n_experiences}
+        return out
 
     def __enter__(self) -> _SLAM:
         return self
@@ -162,16 +211,59 @@ class _SLAM:
         self.finish()
 
 
+def _image_data(image: np.ndarray | bytes, encoding: str | None) -> dict[str, Any]:
+    if isinstance(image, (bytes, bytearray, memoryview)):
+        return {"compressed": bytes(image)}
+    arr = np.asarray(image)
+    return {"image": arr, "encoding": encoding or ("mono8" if arr.ndim == 2 else "rgb8")}
+
+
+def _recorder(config: Any, run_dir: str | os.PathLike) -> Any:
+    from .nodes.pipelines import recorder_params
+    from .nodes.recorder import RecorderNode
+
+    os.makedirs(run_dir, exist_ok=True)
+    rec = RecorderNode(**recorder_params(config))
+    rec.run_dir = os.fspath(run_dir)
+    rec.setup()
+    return rec
+
+
 class NeoSLAM(_SLAM):
     """NeoSLAM: A (features), B (projector), C (neocortex), D (spatial-view cells) and the RatSLAM
-    back end (pose cells, experience map)."""
+    back end (pose cells, experience map). ``front_end`` and ``back_end`` are the two cores."""
 
     pipeline = "neoslam"
-    _front_end = ("A", "B", "C", "D")
+
+    def _make_front_end(self, config: Any) -> FrontEnd:
+        return FrontEnd(config.front_end())
+
+    def _template(self, data: dict[str, Any], frame: int) -> tuple[dict[str, Any] | None, FrontEndResult | None]:
+        if not self.front_end.keep(frame):
+            return None, None
+        front = self.front_end.step(decode_rgb(data), frame)
+        return front.template, front
+
+    def step_cells(self, cells: np.ndarray, odometry: Odometry | None = None, stamp: float | None = None,
+                   frame: int | None = None) -> StepResult:
+        """A frame given by C's winner cells (a recording of C's output, when A, B and C need not
+        run again): D and the back end, as :meth:`step` runs them."""
+        def front(res: StepResult) -> None:
+            res.template = self.front_end.template(np.asarray(cells))
+
+        return self._step(front, odometry, stamp, frame)
 
 
 class RatSLAM(_SLAM):
     """The baseline: RatSLAM's local-view cells and the same back end."""
 
     pipeline = "ratslam"
-    _front_end = ("local_view",)
+
+    def _make_front_end(self, config: Any) -> LocalViewFrontEnd:
+        return LocalViewFrontEnd(config.local_view)
+
+    def _template(self, data: dict[str, Any], frame: int) -> tuple[dict[str, Any] | None, FrontEndResult | None]:
+        return self.front_end.template(camera_pixels(data)), None
+
+
+__all__ = ["NeoSLAM", "RatSLAM", "StepResult"]

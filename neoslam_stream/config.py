@@ -12,15 +12,16 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, field_validator
 
+from .algorithms.backend import BackEndConfig, PoseCellStageConfig
 from .algorithms.features import FeatureConfig
+from .algorithms.frontend import FrontEndConfig
 from .algorithms.neocortex import NeocortexConfig
 from .algorithms.oracle import OracleConfig
 from .algorithms.projector import ProjectorConfig
 from .algorithms.ratslam.experience_map import ExperienceMapConfig
 from .algorithms.ratslam.local_view import LocalViewConfig
-from .algorithms.ratslam.pose_cells import PoseCellConfig
 from .algorithms.ratslam.visual_odometry import VisualOdometryConfig
 from .algorithms.spatial_view import SpatialViewConfig
 from .runtime.config import ConfigError, RunConfig, load_yaml_config
@@ -69,16 +70,32 @@ class FullRunConfig(RunConfig):
     projector: ProjectorConfig = Field(default_factory=ProjectorConfig)
     neocortex: NeocortexConfig = Field(default_factory=NeocortexConfig)
     spatial_view: SpatialViewConfig = Field(default_factory=SpatialViewConfig)
-    pose_cells: PoseCellConfig = Field(default_factory=PoseCellConfig)
+    pose_cells: PoseCellStageConfig = Field(default_factory=PoseCellStageConfig)
     experience_map: ExperienceMapConfig = Field(default_factory=ExperienceMapConfig)
-    local_view: LocalViewConfig = Field(default_factory=lambda: LocalViewConfig(
-        template_x_size=60, template_y_size=20, vt_shift_match=4, vt_step_match=1))
+    local_view: LocalViewConfig = Field(default_factory=LocalViewConfig)
     visual_odometry: VisualOdometryConfig = Field(default_factory=VisualOdometryConfig)
     #: the oracle front end of `neoslam run --oracle-templates` (template ids from ground truth)
     oracle: OracleConfig = Field(default_factory=OracleConfig)
     #: wheel: odometry from the source; visual: RatSLAM's visual odometry stage
     odometry: str = Field("wheel", pattern="^(wheel|visual)$")
     ros2_out: Ros2OutConfig = Field(default_factory=Ros2OutConfig)
+
+    @field_validator("source")
+    @classmethod
+    def _known_source_kind(cls, v: Any) -> Any:
+        from .sources import check_kind  # the registry only: no source module is imported
+
+        check_kind(v.kind)
+        return v
+
+    def front_end(self) -> FrontEndConfig:
+        """The NeoSLAM front end's sections (the same objects, not copies)."""
+        return FrontEndConfig.model_construct(features=self.features, projector=self.projector,
+                                              neocortex=self.neocortex, spatial_view=self.spatial_view)
+
+    def back_end(self) -> BackEndConfig:
+        """The back end's sections (the same objects, not copies)."""
+        return BackEndConfig.model_construct(pose_cells=self.pose_cells, experience_map=self.experience_map)
 
 
 def config_model() -> type[BaseModel]:

@@ -1,6 +1,8 @@
-"""A run of a named pipeline: the plan from ``nodes.pipelines``, hosted by the runtime's supervisor.
+"""A run of a named pipeline: the plan from ``nodes.pipelines`` and the source from ``sources``,
+hosted by the runtime's supervisor.
 
-The one place where the runtime (which knows no algorithm) meets the nodes (which know them).
+The one place where the runtime (which knows no algorithm and no source module) meets the nodes
+and the sources.
 """
 
 from __future__ import annotations
@@ -20,10 +22,12 @@ def run(cfg: Any, run_dir: str | Path | None = None, resume: str | Path | None =
     until interrupted; returns the report. ``resume``: a run folder to continue from its last
     complete checkpoint; ``map_path``: an exported map to start from (a new session on an old map)."""
     from .nodes.pipelines import build_plan
+    from .sources import source_factory
 
     try:
         plan = build_plan(cfg)
+        factory = source_factory(cfg.source.kind)
     except ValueError as exc:
         raise RunError(str(exc)) from None
     # run_part: all of the plan, or this host's share of a run split over hosts (run.stages)
-    return run_part(cfg, plan, run_dir, resume, map_path)
+    return run_part(cfg, plan, run_dir, resume, map_path, factory)

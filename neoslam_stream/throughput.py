@@ -1,19 +1,17 @@
 """``neoslam bench throughput``: the paper's Part I (frame loss at camera rate) on the real stages.
 
-Two experiments, both on the embedded synthetic world looped (so any duration works):
+Two experiments on the embedded synthetic world, looped so that any duration works (docs/performance.md):
 
-* **rate sweep** (real-time mode: the source publishes at a fixed rate, queues are bounded rings
-  that drop the oldest message): for every (topology, rate) one run of ``duration`` seconds,
-  summarised as one row of ``throughput.json``'s ``runs`` (the issue's keys: frames_in,
-  frames_processed, loss, per-stage tau p50/p95, CPU and RSS per worker, f_pipeline_predicted,
-  bottleneck, end-to-end latency p50/p95), and the paper's table (Algorithm | Processed Frames |
-  Data Loss).
-* **scaling** (lossless mode, ``--scaling N`` frames): the monitor's stats.jsonl sampled every
-  1000 frames: recent per-stage tau, RSS per worker, TM segments/synapses, spatial-view intervals,
-  experience-map size and relaxation time; a linear fit of total RSS extrapolated to 100k frames.
+* **rate sweep** (real-time: the source publishes at a fixed rate into bounded rings that drop the
+  oldest message): one run of ``duration`` seconds per (topology, rate), one row of
+  ``throughput.json``'s ``runs`` (frames, loss, per-stage tau, CPU and RSS per worker, predicted
+  f_pipeline, bottleneck, latency), and the paper's table (Algorithm | Processed Frames | Data Loss).
+* **scaling** (lossless, ``--scaling N`` frames): the monitor's stats.jsonl sampled every 1000
+  frames (per-stage tau, RSS, TM segments/synapses, intervals, map size, relaxation time) and a
+  linear fit of total RSS extrapolated to 100k frames.
 
-The runtime only moves messages; which numbers mean what (segments, intervals) comes from the
-stages' own ``info()``, so this module reads them by name from the run's stats.
+The runtime only moves messages; what the numbers mean comes from the stages' own ``info()``, so
+this module reads them by name from the run's stats.
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The in-process API: NeoSLAM / RatSLAM hosting the run's nodes in the caller's process."""
+"""The in-process API: NeoSLAM / RatSLAM calling the front-end and back-end cores in the caller's process."""
 
 from __future__ import annotations
 
@@ -28,8 +28,10 @@ def frames():
 
 def test_front_end_alone_needs_no_odometry(frames):
     slam = NeoSLAM(_cfg(), backend=False)
-    assert list(slam.nodes) == ["A", "B", "C", "D"]
-    ids = [slam.step(sf.image).template_id for sf in frames]
+    assert slam.back_end is None
+    results = [slam.step(sf.image) for sf in frames]
+    ids = [r.template_id for r in results]
+    assert all(r.pose is None and len(r.front.bits) == 512 for r in results)
     # the first frame opens interval 0 and template 0; ids are consecutive from 0 (paper, step 4)
     assert ids[0] == 0 and all(0 <= t <= max(ids) for t in ids)
     assert sorted(set(ids)) == list(range(max(ids) + 1))
@@ -52,8 +54,9 @@ def test_poses_follow_the_odometry_and_the_map_grows(frames):
     # dead reckoning of 0.1 m per frame along the start heading (0 rad in the default config)
     assert np.diff(xs) == pytest.approx(0.1)
     assert len(slam.map()["nodes"]) >= 1
-    out = slam.finish()
-    assert [t for t, _ in out][-1] == "experience_map/map"
+    assert slam.finish() == slam.map()
+    with pytest.raises(RuntimeError, match="finished"):
+        slam.step(frames[0].image, odometry=(1.0, 0.0, 0.1))
 
 
 def test_frames_must_advance_and_bad_input_is_refused_without_breaking_the_chain(frames):
@@ -63,6 +66,8 @@ def test_frames_must_advance_and_bad_input_is_refused_without_breaking_the_chain
         slam.step(frames[1].image, frame=5)
     with pytest.raises(MessageError):  # validated like a message from the bus: uint8 images only
         slam.step(frames[1].image.astype(np.float32))
+    with pytest.raises(StageInputError, match="channels"):
+        slam.step(frames[1].image[:, :, :2])
     with pytest.raises(StageInputError, match="corrupt|truncated|decode"):
         slam.step(b"\xff\xd8not a jpeg")
     ok, jpeg = cv2.imencode(".jpg", frames[2].image[:, :, ::-1])
@@ -82,3 +87,14 @@ def test_run_dir_gets_the_files_of_a_run(tmp_path, frames):
     assert len((tmp_path / "templates.csv").read_text().splitlines()) == 1 + 5
     assert len((tmp_path / "trajectory.tum").read_text().splitlines()) == 5
     assert (tmp_path / "map.json").is_file()
+
+
+def test_a_refused_image_still_moves_the_robot(frames):
+    """The frame's odometry happened whatever its image was: a corrupt frame's motion is integrated
+    (without a template), so the next pose is where the wheels say."""
+    slam = RatSLAM(_cfg())
+    first = slam.step(frames[0].image, odometry=(1.0, 0.0, 0.1))
+    with pytest.raises(StageInputError):
+        slam.step(b"\xff\xd8not a jpeg", odometry=(1.0, 0.0, 0.1))
+    r = slam.step(frames[1].image, odometry=(1.0, 0.0, 0.1))
+    assert r.frame == 2 and r.pose[0] - first.pose[0] == pytest.approx(0.2)  # 0.1 m per sample, both counted

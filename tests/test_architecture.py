@@ -1,5 +1,5 @@
 """The layering of the package (README "Architecture"): algorithms know no runtime, the runtime
-knows no algorithm, and only stage A's process loads torch."""
+knows no algorithm, node, source module or algorithm topic, and only stage A's process loads torch."""
 
 from __future__ import annotations
 
@@ -61,12 +61,43 @@ def test_no_algorithm_module_imports_the_runtime_nodes_or_zenoh():
     assert _offending(paths, forbidden) == {}
 
 
-def test_the_runtime_imports_no_algorithm_and_no_node():
+def test_the_runtime_imports_no_algorithm_node_or_source():
     paths = _modules("runtime")
     assert len(paths) >= 10
-    forbidden = ("neoslam_stream.algorithms", "neoslam_stream.nodes", "neoslam_stream.config",
-                 "neoslam_stream.api", "torch")
+    forbidden = ("neoslam_stream.algorithms", "neoslam_stream.nodes", "neoslam_stream.sources",
+                 "neoslam_stream.config", "neoslam_stream.api", "neoslam_stream.launch", "neoslam_stream.cli",
+                 "torch")
     assert _offending(paths, forbidden) == {}
+
+
+def test_the_scan_sees_a_forbidden_import():
+    # the check above must be able to fail: launch is where the runtime meets nodes and sources
+    found = _offending([PKG / "launch.py"], ("neoslam_stream.sources", "neoslam_stream.nodes"))
+    assert found and all(m.startswith(("neoslam_stream.sources", "neoslam_stream.nodes"))
+                         for m in found["neoslam_stream/launch.py"])
+
+
+def _code_strings(path: Path) -> set[str]:
+    """The string constants of ``path``'s code (docstrings left out), f-string parts included."""
+    tree = ast.parse(path.read_text())
+    docs = {id(n.value) for n in ast.walk(tree) if isinstance(n, ast.Expr) and isinstance(n.value, ast.Constant)}
+    return {n.value for n in ast.walk(tree)
+            if isinstance(n, ast.Constant) and isinstance(n.value, str) and id(n) not in docs}
+
+
+def test_the_runtime_names_no_algorithm_topic():
+    # the plan gives the final topic, the capacities and the schemas of the nodes' topics
+    from neoslam_stream.nodes.topics import ALGORITHM_TOPICS
+
+    names = {str(t) for t in ALGORITHM_TOPICS}
+    assert "experience_map/pose" in names and "pose_cells/action" in names
+    assert names <= _code_strings(PKG / "nodes" / "topics.py")  # the scan can see them
+    bad = {}
+    for p in _modules("runtime"):
+        hits = sorted(s for s in _code_strings(p) if any(s == n or s.startswith(n + "/") for n in names))
+        if hits:
+            bad[str(p.relative_to(PKG.parent))] = hits
+    assert bad == {}
 
 
 def _loaded_after(code: str) -> set[str]:

@@ -1,4 +1,4 @@
-"""Issue #14's diagnosis tools: D's runner-up, the oracle front end, closures.csv, closure
+"""The diagnosis tools of a map's quality: D's runner-up, the oracle front end, closures.csv, closure
 precision/recall at a stated radius, omega >= 1, and the paper's profile. Expected values are
 worked by hand from the definitions (docs/evaluation.md)."""
 

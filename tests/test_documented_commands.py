@@ -1,5 +1,5 @@
-"""Every command line in README.md and docs/*.md, exactly as written (issue #13: a documented
-command is a promise).
+"""Every command line in README.md and docs/*.md, exactly as written: a documented command is a
+promise.
 
 The commands are read from the documents themselves (fenced ``bash`` blocks, and inline code that
 starts with ``neoslam ``, ``make`` or ``pip``), in a fresh folder holding a tiny dataset at the

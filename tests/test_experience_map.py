@@ -216,9 +216,10 @@ def test_the_recorder_writes_the_trajectory_on_the_final_map(tmp_path):
 
 def test_actions_without_odometry_are_refused_by_the_topic_schema():
     from neoslam_stream.nodes.topics import POSE_CELL_ACTION
-    from neoslam_stream.runtime.messages import Message, MessageError, encode
+    from neoslam_stream.runtime.messages import Message, MessageError, encode, register_topics
 
     assert {"vtrans", "vrot", "dt"} <= set(POSE_CELL_ACTION.schema)
+    register_topics([POSE_CELL_ACTION])
     bad = Message("pose_cells/action", 0, 0.0, {"action": 1, "src_id": 0, "dst_id": 0})
     with pytest.raises(MessageError, match="vtrans"):
         encode(bad)

@@ -130,9 +130,10 @@ def test_auto_falls_back_to_efficientnet_lite0(tmp_path, monkeypatch):
 
 def test_efficientnet_state_dict_loads_strictly():
     from neoslam_stream.algorithms.backbones import EfficientNetLite0
+    from neoslam_stream.algorithms.weights import efficientnet_lite0_weights
 
     net = EfficientNetLite0()
-    state = torch.load(F.efficientnet_lite0_weights(), map_location="cpu", weights_only=True)
+    state = torch.load(efficientnet_lite0_weights(), map_location="cpu", weights_only=True)
     missing = net.load_state_dict(state, strict=True)
     assert not missing.missing_keys and not missing.unexpected_keys
 

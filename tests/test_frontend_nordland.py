@@ -1,11 +1,11 @@
-"""Front end on real data: Nordland summer then winter through A, B, C and D.
+"""Front end on real data: Nordland summer then winter through A, B, C and D (bench/nordland.py).
 
 Subset (so the test takes about a minute): every 8th thumbnail (every 80th source frame, 447
 places), places where either season's frame is featureless (grey-level std < 10: tunnels, darkness)
 left out of both passes -> 417 places, 834 frames. Stage B centres the features with a running mean
-(``centre_window`` 100, see docs/frontend.md), and D's theta_sigma is calibrated on the summer pass
-alone (99.9th percentile of overlaps between summer frames of different places). C is the real
-Temporal Memory.
+(``centre_window`` 100, see docs/frontend.md), and D (the paper's theta_alpha, theta_rho and omega:
+its config's defaults) has theta_sigma calibrated on the summer pass alone (99.9th percentile of
+overlaps between summer frames of different places). C is the real Temporal Memory.
 
 Why the assertions:
 
@@ -20,22 +20,26 @@ Why the assertions:
 
 from __future__ import annotations
 
+import sys
+from pathlib import Path
+
 import pytest
 
-from neoslam_stream.datasets.nordland import DATA, MAP_SETTINGS, run_frontend
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+
+from nordland import DATA, map_settings, run_frontend  # noqa: E402
 
 pytestmark = [pytest.mark.slow,
               pytest.mark.skipif(not (DATA / "summer").is_dir(),
                                  reason=f"Nordland thumbnails not found at {DATA} (../shared/data is absent)")]
 
-SVC = dict(theta_alpha=384, theta_rho=3, exclude_recent_intervals=3)
 STEP, MIN_STD, TOLERANCE, WINDOW = 8, 10.0, 150, 100
 
 
 @pytest.fixture(scope="module")
 def efficientnet_runs():
     # the real Temporal Memory (stage C): an error in it fails this test, never a silent stand-in
-    return run_frontend("efficientnet_lite0", STEP, [{**SVC, "theta_sigma": None}, {**SVC, "theta_sigma": 470}],
+    return run_frontend("efficientnet_lite0", STEP, [{"theta_sigma": None}, {"theta_sigma": 470}],
                         tolerance=TOLERANCE, neocortex="tm", centre_window=WINDOW, min_std=MIN_STD)
 
 
@@ -63,11 +67,13 @@ def test_paper_theta_sigma_closes_a_subset(efficientnet_runs):
     assert paper["summer_closures"] <= calibrated["summer_closures"]
 
 
-def test_map_settings_reach_issue14_target():
-    """Issue #14's target through the real A -> B -> C -> D stream: precision >= 0.9 at recall >= 0.2
-    with ``MAP_SETTINGS`` (chosen on the validation subset, offset 4; this is the test subset)."""
-    run = run_frontend("efficientnet_lite0", STEP, [MAP_SETTINGS["spatial_view"]], tolerance=TOLERANCE,
-                       neocortex="tm", centre_window=MAP_SETTINGS["centre_window"], min_std=MIN_STD)[0]
+def test_map_settings_reach_the_precision_target():
+    """The mapping target through the real A -> B -> C -> D stream: precision >= 0.9 at recall >= 0.2
+    with bench/settings/nordland.yaml (chosen on the validation subset, offset 4; this is the test
+    subset)."""
+    settings = map_settings()
+    run = run_frontend("efficientnet_lite0", STEP, [settings["spatial_view"]], tolerance=TOLERANCE,
+                       neocortex="tm", centre_window=settings["centre_window"], min_std=MIN_STD)[0]
     assert run["neocortex"] == "neocortex (tie_break lowest)" and run["offset"] == 0
     svc = run["svc"]
     # the deferred keys resolved: a gap of 95 % of the 417 places, theta_sigma calibrated on summer
@@ -78,7 +84,7 @@ def test_map_settings_reach_issue14_target():
 
 def test_random_alexnet_is_flagged_and_carries_no_place_information():
 
-    run = run_frontend("random_alexnet", STEP, [{**SVC, "theta_sigma": None}], tolerance=TOLERANCE,
+    run = run_frontend("random_alexnet", STEP, [{"theta_sigma": None}], tolerance=TOLERANCE,
                        neocortex="passthrough", centre_window=WINDOW, min_std=MIN_STD)[0]
     assert run["backbone"] == "random_alexnet" and run["backbone_is_random"] is True
     # random conv weights: closures are at chance level, far below the bar the real model clears
@@ -94,5 +100,5 @@ def test_a_failing_temporal_memory_fails_the_front_end(monkeypatch):
 
     monkeypatch.setattr(Neocortex, "compute", broken)
     with pytest.raises(RuntimeError, match="C is broken"):
-        run_frontend("efficientnet_lite0", STEP, [{**SVC, "theta_sigma": None}], tolerance=TOLERANCE,
+        run_frontend("efficientnet_lite0", STEP, [{"theta_sigma": None}], tolerance=TOLERANCE,
                      limit=16, neocortex="tm", centre_window=WINDOW, min_std=MIN_STD)

@@ -1,4 +1,4 @@
-"""Issue #13: bugs are not bad input, each bad input counted once, one message cannot make a stage
+"""Hardened outputs: bugs are not bad input, each bad input counted once, one message cannot make a stage
 run away with its frame number, outputs written as they come and kept across a worker's crash,
 a full disk never empties a file.
 
@@ -24,10 +24,13 @@ from neoslam_stream.nodes.recorder import JOURNAL, TEMPLATES_HEADER, RecorderNod
 from neoslam_stream.nodes.topics import EXPERIENCE_MAP, EXPERIENCE_POSE, VISUAL_TEMPLATE
 from neoslam_stream.runtime import files as files_mod
 from neoslam_stream.runtime.bus import InputQueue
-from neoslam_stream.runtime.messages import MAX_FRAME, Message, MessageError, encode
+from neoslam_stream.runtime.messages import MAX_FRAME, Message, MessageError, encode, register_unvalidated
 from neoslam_stream.runtime.node import Node, NodeSpec, StageInputError, is_input_error
 from neoslam_stream.runtime.worker import Worker, WorkerSpec
 from neoslam_stream.tum import write_tum
+
+#: the probe node's free-form test messages (declared, as every topic must be)
+register_unvalidated("probe")
 
 
 # ------------------------------------------------------------------------------ helpers
@@ -109,8 +112,8 @@ def test_algorithms_refuse_bad_input_with_their_own_error_type():
 
     refusals = [
         lambda: SpatialViewCells(sdr_size=256).compute(np.array([1, 300])),
-        lambda: TemporalMemory(columnDimensions=(32,), cellsPerColumn=2).compute(np.array([0.5, 1.5])),
-        lambda: TemporalMemory(columnDimensions=(32,), cellsPerColumn=2).compute(np.array([40])),
+        lambda: TemporalMemory(columns=32, cells_per_column=2).compute(np.array([0.5, 1.5])),
+        lambda: TemporalMemory(columns=32, cells_per_column=2).compute(np.array([40])),
         lambda: PoseCellNetwork(pc_dim_xy=11).on_odo(float("nan"), 0.0, 0.1),
         lambda: PoseCellNetwork(pc_dim_xy=11).on_view_template(-1),
         lambda: ExperienceMap().on_odo(0.1, float("inf"), 0.1),
@@ -188,7 +191,7 @@ def test_a_bad_frame_in_a_micro_batch_is_counted_once(tmp_path):
 
 
 def test_realtime_workers_batch_the_frames_waiting_in_their_ring(tmp_path):
-    # #16: a stage that falls behind in a real-time run gets every frame its drop-oldest ring
+    # a stage that falls behind in a real-time run gets every frame its drop-oldest ring
     # still holds in one call (one pass over B's matrix for all of them), as in lossless runs
     from neoslam_stream.nodes.pipelines import build_plan
     from neoslam_stream.runtime.topology import Supervisor
@@ -484,3 +487,54 @@ def test_killing_the_experience_map_without_checkpoints_keeps_the_trajectory_wri
     rows = (run_dir / "templates.csv").read_text().splitlines()[1:]
     frames = [int(r.split(",")[0]) for r in rows]
     assert frames[0] < 5 and frames == sorted(set(frames))
+
+
+# ------------------------------------------------------------------------------ saved states that do not fit
+class PickyNode(ProbeNode):
+    """Refuses a state made with another threshold, as an algorithm's load_state_dict does."""
+
+    def load_state_dict(self, state):
+        if state["theta"] != 5:
+            raise ValueError(f"probe.theta: the state was made with {state['theta']}, the config has 5")
+
+
+def make_picky() -> PickyNode:
+    return PickyNode()
+
+
+def test_a_stage_that_refuses_its_saved_state_ends_the_worker_with_one_line(tmp_path):
+    from neoslam_stream.runtime.checkpoint import load_state_file, save_state_file
+    from neoslam_stream.runtime.worker import StateRefused
+
+    path = tmp_path / "picky.state"
+    save_state_file(path, {"theta": 7})
+    assert load_state_file(path) == {"theta": 7}
+    w = Worker(WorkerSpec(name="picky", stages=[NodeSpec("picky", f"{__name__}:make_picky")], run="test-run",
+                          run_dir=str(tmp_path), lossless=True, resume_states={"picky": str(path)}))
+    w.build()
+    with pytest.raises(StateRefused, match=r"stage picky refuses the state in .*picky.state: probe.theta: "
+                                           r"the state was made with 7, the config has 5"):
+        w.setup()
+
+
+def test_the_supervisor_does_not_restart_a_worker_that_refused_its_state(tmp_path, monkeypatch):
+    from neoslam_stream.nodes.pipelines import build_plan
+    from neoslam_stream.runtime.procs import EXIT_STATE_REFUSED
+    from neoslam_stream.runtime.topology import RunError, Supervisor
+
+    cfg = load_config("default")
+    sup = Supervisor(cfg, build_plan(cfg), tmp_path / "run")
+
+    class Exited:
+        exitcode = EXIT_STATE_REFUSED
+
+        def is_alive(self):
+            return False
+
+    sup.procs["D"] = Exited()
+    restarted = []
+    monkeypatch.setattr(sup, "_alive_tokens", lambda: set())
+    monkeypatch.setattr(sup, "_restart", lambda *a: restarted.append(a))
+    with pytest.raises(RunError, match="refused the saved state"):
+        sup._wait_ready(["D"], timeout=5)
+    assert restarted == []

@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 from neoslam_stream.algorithms.ratslam.local_view import LocalViewCells
-from neoslam_stream.nodes.ratslam import LocalViewNode, PoseCellsNode
 from neoslam_stream.runtime.messages import Message
 
 
@@ -43,6 +42,8 @@ def test_panoramic_relative_rad():
 
 
 def test_local_view_stage_flags_revisits():
+    from neoslam_stream.nodes.ratslam import LocalViewNode
+
     st = LocalViewNode(template_x_size=8, template_y_size=4, vt_shift_match=1, vt_step_match=1)
     rng = np.random.default_rng(2)
     a, b = (rng.integers(0, 256, (16, 32, 3), dtype=np.uint8) for _ in range(2))
@@ -61,6 +62,8 @@ def _tmpl(f, vt):
 
 
 def test_pose_cells_stage_is_order_independent():
+    from neoslam_stream.nodes.ratslam import PoseCellsNode
+
     events = [("odom", _odom(f)) for f in range(6)] + [("visual_template", _tmpl(f, f // 2)) for f in range(6)]
     orders = [events, events[6:] + events[:6], [e for pair in zip(events[:6], events[6:], strict=True) for e in pair]]
     results = []
@@ -77,7 +80,7 @@ def test_pose_cells_stage_is_order_independent():
 
 def _brute_force(lv, t):
     """Reference: every (template, shift) error by plain loops, first minimum wins."""
-    c = lv.cfg
+    c = lv.config
     X, Y, S = c.template_x_size, c.template_y_size, c.vt_shift_match
     best = (None, math.inf, 0)
     for i, tmpl in enumerate(lv.templates):
@@ -163,6 +166,15 @@ def test_state_round_trip_keeps_matching():
     lv = LocalViewCells(template_x_size=16, template_y_size=4, vt_shift_match=2, vt_step_match=1)
     imgs = [rng.integers(0, 256, (8, 32), dtype=np.uint8) for _ in range(3)]
     ids = [lv.on_image(im)[0] for im in imgs]
-    twin = LocalViewCells(**lv.cfg.model_dump())
+    twin = LocalViewCells(lv.config)
     twin.load_state_dict(lv.state_dict())
     assert [twin.on_image(im)[0] for im in imgs] == ids == [0, 1, 2]
+
+
+def test_a_checkpoint_with_templates_of_another_size_is_refused():
+    lv = LocalViewCells(template_x_size=16, template_y_size=4, vt_shift_match=2, vt_step_match=1)
+    lv.on_image(np.random.default_rng(5).integers(0, 256, (8, 32), dtype=np.uint8))
+    other = LocalViewCells(template_x_size=16, template_y_size=8, vt_shift_match=2, vt_step_match=1)
+    with pytest.raises(ValueError, match="template_y_size: the checkpoint's is 4, the config's 8"):
+        other.load_state_dict(lv.state_dict())
+    assert len(other.templates) == 0

@@ -1,4 +1,4 @@
-"""The levers of issue #14 that the default keeps, on hand-worked cases: the sequence filter of
+"""The map levers that the default keeps, on hand-worked cases: the sequence filter of
 loop closures (algorithms.sequence, D's ``sequence`` settings) and the robust experience-map
 relaxation (``exp_robust_m``)."""
 
@@ -184,8 +184,8 @@ def test_pose_cell_node_keeps_a_refused_template_from_the_network():
         node.process("odom", Message("odom", f, float(f), {"vtrans": v, "vrot": 0.0, "dt": 1.0}))
         node.process("visual_template", Message("visual_template", f, float(f), {"id": vt}))
     node.flush()
-    assert node.gate.refused == 1
-    assert node.pc.current_vt == 1  # the network never saw the refused recognition
+    assert node.stage.gate.refused == 1
+    assert node.stage.network.current_vt == 1  # the network never saw the refused recognition
     assert node.info()["gate_refused"] == 1
 
 
@@ -267,7 +267,7 @@ def test_pose_cell_node_sends_the_corrected_yaw_rate_to_the_map():
     assert load_config("default").pose_cells.odometry_bias.enabled
     assert not load_config("paper").pose_cells.odometry_bias.enabled
     node = make_pose_cells_node(odometry_bias={"enabled": True})
-    node.bias.bias = 0.02  # as if closures had measured it
+    node.stage.bias.bias = 0.02  # as if closures had measured it
     node.process("visual_template", Message("visual_template", 0, 0.0, {"id": 0}))
     ((_, action),) = node.process("odom", Message("odom", 0, 0.0, {"vtrans": 1.0, "vrot": 0.5, "dt": 0.1}))
     assert action["vrot"] == pytest.approx(0.48)
@@ -334,12 +334,16 @@ def test_pose_cell_node_feeds_every_template_to_the_bias_before_the_gate():
     step(1, 0.1, 0.0, 0.0)
     step(None, 60.0, 1.0, 0.02)  # 60 m straight ahead, the odometry turning 0.02 rad/s (1.2 rad)
     step(0, 0.1, 0.0, 0.0)
-    assert node.gate.refused == 1
-    assert node.bias.samples == 1 and node.bias.bias == pytest.approx(1.2 / 60.2, rel=1e-6)
+    assert node.stage.gate.refused == 1
+    assert node.stage.bias.samples == 1 and node.stage.bias.bias == pytest.approx(1.2 / 60.2, rel=1e-6)
 
 
 def test_nordland_protocol_resolves_the_gap_and_the_calibration_quantile():
-    from neoslam_stream.datasets.nordland import resolve_params
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+    from nordland import resolve_params  # the protocol lives with the benches
 
     # four summer frames of places 0, 100, 400, 700 (tolerance 150): far-apart pairs are every pair
     # but (0, 100); their overlaps are 1 (0-400), 2 (0-700), 3 (100-400), 4 (100-700), 5 (400-700)

@@ -1,13 +1,11 @@
-"""The default's loop closures on a short synthetic run, against ground truth (issue #14).
+"""The default's loop closures on a short synthetic run, against ground truth.
 
 1000 frames of the synthetic world (one lap and the first quarter of the second: the revisits
 are frames ~790-1000) through the in-process chain with the shipped default config. A closure is
 correct when the matched template's first frame lies within 1 m of the frame's true position
-(``evaluation.loop_closure_quality``). Measured (bench/maps.py, the full run's first 1000 frames):
-235 closures, 234 correct (precision 0.996), recall 0.83; the paper's rule on the same frames
-gives 337 closures, precision 0.78. The bars leave room for a different backbone build or BLAS:
-precision >= 0.95 (the paper's rule fails it by far), at least 150 closures and recall >= 0.6
-(a filter that refused nearly everything would fail them).
+(``evaluation.loop_closure_quality``). The bars leave room for a different backbone build or BLAS
+(measured values: docs/evaluation.md): precision >= 0.95 (the paper's rule fails it by far), at
+least 150 closures and recall >= 0.6 (a filter that refused nearly everything would fail them).
 """
 
 from __future__ import annotations
@@ -21,8 +19,7 @@ from neoslam_stream.sources.synthetic import SyntheticWorldSource
 
 FRAMES = 1000
 
-#: about 50 s: 48 ms per frame (render 10 ms + one in-process step 38 ms) measured with the
-#: 2-core machine at load 4; less on a quiet one
+#: 1000 frames rendered and stepped through the whole chain in-process: tens of seconds
 pytestmark = pytest.mark.slow
 
 

@@ -1,4 +1,8 @@
-"""Wire codec: round trips, validation, and one MessageError per fault."""
+"""Wire codec: round trips, validation, one MessageError per fault, and explicit schema registration."""
+
+import pickle
+import subprocess
+import sys
 
 import msgpack
 import numpy as np
@@ -7,14 +11,28 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
+from neoslam_stream.nodes.topics import ALGORITHM_TOPICS
 from neoslam_stream.runtime.messages import (
     MAX_MESSAGE_BYTES,
     SCHEMA_VERSION,
+    SCHEMAS,
+    Field,
     Message,
     MessageError,
+    Topic,
     decode,
     encode,
+    register_schema,
+    register_topics,
+    register_unvalidated,
 )
+from neoslam_stream.runtime.node import Node
+
+# what a process of a run does at its start: the algorithms' topics are validated from here on,
+# and the free-form types of these tests are declared as such
+register_topics(ALGORITHM_TOPICS)
+register_unvalidated("anything")
+register_unvalidated("custom")
 
 
 def _body(**over):
@@ -125,3 +143,78 @@ def test_property_random_bytes_never_crash(data):
         decode(data)
     except MessageError:
         pass
+
+
+def _raw(mtype, data):
+    return msgpack.packb({"v": SCHEMA_VERSION, "type": mtype, "frame": 0, "stamp": 0.0, "trace": [],
+                          "data": data}, use_bin_type=True)
+
+
+def test_a_type_nobody_registered_is_refused_with_a_clear_message():
+    with pytest.raises(MessageError, match=r"'never_registered' has no registered schema.*register"):
+        decode(_raw("never_registered", {"x": 1}))
+    with pytest.raises(MessageError, match="no registered schema"):
+        encode(Message("never_registered", 0, 0.0, {"x": 1}))
+
+
+def test_declaring_a_topic_registers_nothing_registering_it_validates():
+    probe = Topic("probe_topic", {"n": Field("int"), "v": Field("float", optional=True, finite=True)})
+    assert "probe_topic" not in SCHEMAS
+    with pytest.raises(MessageError, match="no registered schema"):
+        decode(_raw("probe_topic", {"n": 1}))
+    register_topics([probe])
+    assert decode(_raw("probe_topic", {"n": 3}))["n"] == 3
+    with pytest.raises(MessageError, match=r"probe_topic.n: expected int"):
+        decode(_raw("probe_topic", {"n": "3"}))
+    with pytest.raises(MessageError, match="required field 'n' missing"):
+        decode(_raw("probe_topic", {"v": 1.0}))
+    with pytest.raises(MessageError, match="not finite"):
+        decode(_raw("probe_topic", {"n": 1, "v": float("nan")}))
+    register_topics([probe])  # the same again: fine
+    with pytest.raises(ValueError, match="already registered with other fields"):
+        register_schema("probe_topic", {"n": Field("str")})
+
+
+def test_a_free_form_type_is_registered_explicitly():
+    register_unvalidated("probe_free")
+    assert decode(_raw("probe_free", {"anything": [1, "x"]}))["anything"] == [1, "x"]
+    with pytest.raises(MessageError, match="negative"):  # the envelope is still checked
+        decode(msgpack.packb({"v": SCHEMA_VERSION, "type": "probe_free", "frame": -1, "stamp": 0.0,
+                              "trace": [], "data": {}}, use_bin_type=True))
+    with pytest.raises(ValueError, match="already registered"):
+        register_schema("probe_free", {"x": Field("int")})
+
+
+def test_building_a_node_registers_the_topics_it_declares():
+    declared = Topic("probe_node_out", {"k": Field("int")})
+
+    class Probe(Node):
+        inputs = ("image",)
+        outputs = (declared,)
+
+    assert "probe_node_out" not in SCHEMAS
+    Probe()
+    with pytest.raises(MessageError, match="probe_node_out.k"):
+        decode(_raw("probe_node_out", {"k": 1.5}))
+
+
+def test_a_topic_crosses_a_spawn_with_its_schema():
+    sdr = next(t for t in ALGORITHM_TOPICS if t == "sdr")
+    back = pickle.loads(pickle.dumps(sdr))
+    assert back == "sdr" and isinstance(back, Topic) and back.schema == sdr.schema
+
+
+def test_importing_the_topics_validates_nothing_in_a_fresh_process():
+    # no import side effect: a process that decodes the algorithms' topics must register them
+    code = ("import msgpack\n"
+            "from neoslam_stream.nodes import topics\n"
+            "from neoslam_stream.runtime.messages import MessageError, decode, register_topics\n"
+            "raw = msgpack.packb({'v': 1, 'type': 'sdr', 'frame': 0, 'stamp': 0.0, 'trace': [],"
+            " 'data': {'cells': [1], 'size': 4}})\n"
+            "try:\n    decode(raw)\nexcept MessageError as e:\n    print('refused:', e)\n"
+            "register_topics(topics.ALGORITHM_TOPICS)\n"
+            "try:\n    decode(raw)\nexcept MessageError as e:\n    print('invalid:', e)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         timeout=120).stdout
+    assert "refused: message type 'sdr' has no registered schema" in out
+    assert "invalid: sdr.cells: expected an array" in out

@@ -61,7 +61,7 @@ def test_stage_state_round_trip():
 
 @pytest.mark.parametrize("tie_break", ["lowest", "random"])
 def test_no_sequence_context_with_neoslam_parameters(tie_break):
-    # minThreshold 1: a segment with ~20 synapses matches as soon as one presynaptic cell is active
+    # min_threshold 1: a segment with ~20 synapses matches as soon as one presynaptic cell is active
     # (P >= 1 - 0.75**20 while a quarter of the cells burst), so a bursting column keeps re-using the
     # cell of its first segment; the same input gets the same winners whatever came before it
     rng = np.random.default_rng(5)
@@ -90,3 +90,29 @@ def test_stage_state_survives_a_checkpoint_file(tmp_path):
         np.testing.assert_array_equal(ra["cells"], rb["cells"])
         assert ra["anomaly"] == rb["anomaly"]
     assert a.info() == b.info()
+
+
+def test_the_neocortex_config_is_the_temporal_memory_config_with_neoslam_defaults():
+    from neoslam_stream.algorithms.neocortex import NeocortexConfig
+    from neoslam_stream.algorithms.temporal_memory import TemporalMemoryConfig
+
+    cfg = NeocortexConfig()
+    assert isinstance(cfg, TemporalMemoryConfig)
+    # NeoSLAM's parameters (the original and the ROS 2 NeoSLAM); htm.core's where they agree
+    assert cfg.model_dump() == dict(
+        columns=2048, cells_per_column=32, activation_threshold=4, initial_permanence=0.55,
+        connected_permanence=0.5, min_threshold=1, max_new_synapse_count=20, permanence_increment=0.01,
+        permanence_decrement=0.01, predicted_segment_decrement=0.0005, max_segments_per_cell=100,
+        max_synapses_per_segment=100, seed=42, tie_break="lowest")
+    nc = Neocortex(cfg)
+    assert nc.tm.config is nc.config  # one object: the TM reads the neocortex's parameters
+    with pytest.raises(ValueError, match="min_threshold"):
+        NeocortexConfig(min_threshold=5)  # above activation_threshold 4, which htm.core refuses
+
+
+def test_a_state_made_with_other_parameters_is_refused():
+    a = Neocortex(cells_per_column=8)
+    for x in _inputs(5):
+        a.compute(x)
+    with pytest.raises(ValueError, match=r"cells_per_column: the state was made with 8, the config has 32"):
+        Neocortex().load_state_dict(a.state_dict())

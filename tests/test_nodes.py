@@ -6,8 +6,8 @@ import pytest
 
 from neoslam_stream.config import load_config
 from neoslam_stream.nodes.pipelines import build_plan
-from neoslam_stream.nodes.topics import EXPERIENCE_MAP, POSE_CELL_ACTION, VISUAL_TEMPLATE
-from neoslam_stream.runtime.messages import SCHEMAS, Field, Topic, register_schema
+from neoslam_stream.nodes.topics import ALGORITHM_TOPICS, EXPERIENCE_MAP, POSE_CELL_ACTION, VISUAL_TEMPLATE
+from neoslam_stream.runtime.messages import SCHEMAS, Field, register_schema, register_topics
 from neoslam_stream.runtime.topology import group_workers
 
 
@@ -40,9 +40,10 @@ def test_a_node_cannot_be_hosted_by_a_later_one():
 
 
 def test_topics_register_their_schemas_and_refuse_a_conflicting_one():
+    register_topics(ALGORITHM_TOPICS)
     assert SCHEMAS["visual_template"] is not None and VISUAL_TEMPLATE == "visual_template"
     assert {"vtrans", "vrot", "dt"} <= set(SCHEMAS[POSE_CELL_ACTION])
     assert "export" in SCHEMAS[EXPERIENCE_MAP]
     register_schema("visual_template", VISUAL_TEMPLATE.schema)  # the same again: fine
     with pytest.raises(ValueError, match="already registered"):
-        Topic("visual_template", {"id": Field("str")})
+        register_schema("visual_template", {"id": Field("str")})

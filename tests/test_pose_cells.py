@@ -32,7 +32,7 @@ def test_single_cell_moves_exactly_one_cell_for_one_cell_of_travel():
 
 def test_half_cell_splits_between_neighbours_and_wraps():
     pc = delta_net()
-    N = pc.N
+    N = pc.config.pc_dim_xy
     pc.P[0, N - 1, 2] = 1.0
     pc._path_integration(0.5, 0.0)  # half a cell along +y from the last row: wraps to row 0
     assert pc.P[0, N - 1, 2] == pytest.approx(0.5)
@@ -148,7 +148,7 @@ def _full_excite_inhibit(P, pc):
 
     E = conv(P, pc.w_e)
     Q = E - conv(E, pc.w_i)
-    Q = np.where(Q >= pc.cfg.pc_global_inhib, Q - pc.cfg.pc_global_inhib, 0.0)
+    Q = np.where(Q >= pc.config.pc_global_inhib, Q - pc.config.pc_global_inhib, 0.0)
     return Q / Q.sum()
 
 
@@ -231,6 +231,16 @@ def test_state_round_trip():
         p.on_view_template(2)
         p.on_odo(0.3, -0.2, 1.0)
     assert twin.get_action() == pc.get_action() and twin.best == pc.best
+
+
+@pytest.mark.parametrize("field, value", [("pc_dim_xy", 11), ("pc_dim_th", 24)])
+def test_a_checkpoint_of_another_size_is_refused(field, value):
+    state = PoseCellNetwork().state_dict()  # pc_dim_xy 21, pc_dim_th 36
+    other = PoseCellNetwork(**{field: value})
+    with pytest.raises(ValueError, match=rf"{field}: the checkpoint's is {21 if field == 'pc_dim_xy' else 36}, "
+                                         rf"the config's {value}"):
+        other.load_state_dict(state)
+    assert other.P.shape == (other.config.pc_dim_th, other.config.pc_dim_xy, other.config.pc_dim_xy)
 
 
 def _odom(f, dt=0.1):

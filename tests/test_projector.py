@@ -3,7 +3,9 @@
 import numpy as np
 import pytest
 
+from neoslam_stream.algorithms import projection as PM
 from neoslam_stream.algorithms import projector as P
+from neoslam_stream.algorithms import weights as W
 from neoslam_stream.nodes import projector as PN
 from neoslam_stream.runtime.messages import Message
 
@@ -40,9 +42,9 @@ def test_slsbh_exactly_512_of_2048_top_and_bottom_quartiles():
 
 
 def test_gaussian_matrix_is_seeded_standard_normal_float32():
-    a = P.gaussian_matrix(300, seed=5, m=64)
-    b = P.gaussian_matrix(300, seed=5, m=64)
-    c = P.gaussian_matrix(300, seed=6, m=64)
+    a = PM.gaussian_matrix(300, seed=5, m=64)
+    b = PM.gaussian_matrix(300, seed=5, m=64)
+    c = PM.gaussian_matrix(300, seed=6, m=64)
     assert a.dtype == np.float32 and a.shape == (300, 64)
     np.testing.assert_array_equal(a, b)
     assert not np.array_equal(a, c)
@@ -57,16 +59,16 @@ def test_projection_is_p_times_f():
 
 
 def test_bin_round_trip_and_size_check(tmp_path):
-    m = P.gaussian_matrix(40, seed=1)
+    m = PM.gaussian_matrix(40, seed=1)
     path = tmp_path / "randomMatrix.bin"
-    P.save_bin(m, path)
+    W.save_bin(m, path)
     assert path.stat().st_size == 40 * 1024 * 4  # no header
-    loaded = P.load_bin(path, 40)
+    loaded = W.load_bin(path, 40)
     np.testing.assert_array_equal(loaded, m)
     raw = np.fromfile(path, dtype="<f4")
     assert raw[1025] == m[1, 1]  # row-major (n, 1024)
     with pytest.raises(ValueError, match="bytes"):
-        P.load_bin(path, 41)
+        W.load_bin(path, 41)
     bp = P.BinaryProjector(input_dim=40, matrix_path=str(path))
     np.testing.assert_array_equal(bp.matrix, m)
 
@@ -76,7 +78,7 @@ def test_full_size_bin_has_the_ros2_byte_count():
 
 
 def test_sparse_projection_density_and_values():
-    sp = P.sparse_matrix(10000, seed=0)
+    sp = PM.sparse_matrix(10000, seed=0)
     density = sp.nnz / (10000 * 1024)
     assert density == pytest.approx(1 / np.sqrt(10000), rel=0.05)
     vals = np.unique(np.abs(sp.data))
@@ -135,7 +137,7 @@ def test_centring_off_by_default_and_state_round_trip():
     rng = np.random.default_rng(4)
     f = rng.standard_normal((6, 30)).astype(np.float32)
     plain = P.BinaryProjector(input_dim=30, seed=1)
-    assert plain.centre_window == 0
+    assert plain.config.centre_window == 0
     np.testing.assert_array_equal(plain.centre(f), f)
     a = P.BinaryProjector(input_dim=30, seed=1, centre_window=4)
     a.bits_batch(f[:3])
@@ -148,6 +150,15 @@ def test_centring_off_by_default_and_state_round_trip():
     d = P.BinaryProjector(input_dim=30, seed=1, centre_window=4)
     for x, y in zip(c.bits_batch(f), d.bits_batch(f + 100.0), strict=True):
         assert len(set(x.tolist()) ^ set(y.tolist())) <= 4  # float rounding may flip a marginal bit
+
+
+def test_a_running_mean_made_with_another_window_or_size_is_refused():
+    a = P.BinaryProjector(input_dim=30, seed=1, centre_window=4)
+    a.bits_batch(np.ones((2, 30), np.float32))
+    with pytest.raises(ValueError, match=r"centre_window: the state was made with 4, the config has 8"):
+        P.BinaryProjector(input_dim=30, seed=1, centre_window=8).load_state_dict(a.state_dict())
+    with pytest.raises(ValueError, match=r"input_dim"):
+        P.BinaryProjector(input_dim=31, seed=1, centre_window=4).load_state_dict(a.state_dict())
 
 
 def test_nan_features_are_rejected():
@@ -168,7 +179,7 @@ def test_nan_features_are_rejected():
         stage.process("visual_features", msg)
 
 
-# ------------------------------------------------------------------ float16 storage of P (#16)
+# ------------------------------------------------------------------ float16 storage of P
 
 def test_half_widening_is_exact_for_every_finite_half():
     # P stored as binary16 bit patterns: the kernel must read each as exactly the float32 value
@@ -177,7 +188,7 @@ def test_half_widening_is_exact_for_every_finite_half():
     allh = np.arange(65536, dtype=np.uint16)
     finite = allh[np.isfinite(allh.view(np.float16))]
     out = np.empty((1, finite.size), np.float32)
-    P._project_rows(np.ones((1, 1), np.float32), finite.reshape(1, -1), out)
+    PM.project_rows(np.ones((1, 1), np.float32), finite.reshape(1, -1), out)
     np.testing.assert_array_equal(out[0], finite.view(np.float16).astype(np.float32))
 
 
@@ -213,22 +224,22 @@ def test_projection_does_not_depend_on_batching_or_threads(dtype, feature_bits):
 
 def test_bin_round_trip_with_float16_storage(tmp_path):
     # the .bin file stays float32: import rounds it to half in memory, export writes float32
-    m = P.gaussian_matrix(40, seed=1)
+    m = PM.gaussian_matrix(40, seed=1)
     path = tmp_path / "randomMatrix.bin"
-    P.save_bin(m, path)
+    W.save_bin(m, path)
     bp = P.BinaryProjector(input_dim=40, matrix_path=str(path), matrix_dtype="float16")
     np.testing.assert_array_equal(bp.matrix_float32(), m.astype(np.float16).astype(np.float32))
     out = tmp_path / "exported.bin"
-    P.save_bin(bp.matrix_float32(), out)
+    W.save_bin(bp.matrix_float32(), out)
     assert out.stat().st_size == 40 * 1024 * 4
-    np.testing.assert_array_equal(P.load_bin(out, 40), m.astype(np.float16).astype(np.float32))
+    np.testing.assert_array_equal(W.load_bin(out, 40), m.astype(np.float16).astype(np.float32))
     full = P.BinaryProjector(input_dim=40, matrix_path=str(path))
     np.testing.assert_array_equal(full.matrix_float32(), m)
     with pytest.raises(ValueError, match="literal_error|float32"):
         P.BinaryProjector(input_dim=40, matrix_dtype="int4")
 
 
-# ------------------------------------------------------------------ int8 storage of P (#16)
+# ------------------------------------------------------------------ int8 storage of P
 
 def test_int8_storage_rounds_the_same_draws_to_a_grid_of_max_over_127():
     ref = P.BinaryProjector(input_dim=3001, seed=4)
@@ -271,7 +282,7 @@ def test_int8_kernel_accumulates_extreme_values_without_overflow():
     Q = np.full((n, 1024), 127, np.int8)
     Q[:, 1] = -127
     out = np.empty((2, 1024), np.int64)
-    P._project_rows_int8(X, Q, out)
+    PM.project_rows_int8(X, Q, out)
     assert out[0, 0] == n * 32767 * 127 and out[0, 1] == -n * 32767 * 127
     assert out[1, 0] == -n * 32767 * 127
 
@@ -312,20 +323,20 @@ def test_seven_bit_features_stay_close_to_the_float_projection_and_need_the_int8
 
 
 def test_bin_import_with_int8_storage(tmp_path):
-    m = P.gaussian_matrix(40, seed=1)
+    m = PM.gaussian_matrix(40, seed=1)
     path = tmp_path / "randomMatrix.bin"
-    P.save_bin(m, path)
+    W.save_bin(m, path)
     bp = P.BinaryProjector(input_dim=40, matrix_path=str(path), matrix_dtype="int8")
     generated = P.BinaryProjector(input_dim=40, seed=1, matrix_dtype="int8")
     # the same draws through the file or the seed give the same rounded matrix
     np.testing.assert_array_equal(bp.matrix, generated.matrix)
     assert bp.matrix_scale == generated.matrix_scale
     out = tmp_path / "exported.bin"
-    P.save_bin(bp.matrix_float32(), out)  # export stays float32, with the rounded values
-    np.testing.assert_array_equal(P.load_bin(out, 40), bp.matrix_float32())
+    W.save_bin(bp.matrix_float32(), out)  # export stays float32, with the rounded values
+    np.testing.assert_array_equal(W.load_bin(out, 40), bp.matrix_float32())
 
 
-# ------------------------------------------------------------------ B in torch on a device (#16)
+# ------------------------------------------------------------------ B in torch on a device
 
 def _marginal_only(bits_a, bits_b, d, k=256):
     """Every bit on which two sLSBH codes of (nearly) the same d differ must be marginal: its

@@ -1,18 +1,24 @@
-"""Real drift: the TU Chemnitz corridor run through pose cells + experience map."""
+"""Real drift: the TU Chemnitz corridor run through pose cells + experience map (bench/tuc_corridor.py)."""
+
+import sys
+from pathlib import Path
 
 import pytest
 
-from neoslam_stream.datasets import tuc
-from neoslam_stream.datasets.tuc import TUC_SETTINGS, first_point_rotated_error
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+
+import tuc_corridor as tuc  # noqa: E402
+from bench_settings import load_settings  # noqa: E402
+from tuc_corridor import first_point_rotated_error  # noqa: E402
 
 pytestmark = pytest.mark.skipif(not tuc.DATA.is_dir(), reason="../shared/data/tuc_slam_odom_loops absent")
 
 
 def test_experience_map_beats_odometry_on_real_drift():
-    s = TUC_SETTINGS
-    r = tuc.run(s["pc"], s["em"], s["threshold"], s["min_gap_s"])
+    s = load_settings("tuc")
+    r = tuc.run(s["pose_cells"], s["experience_map"], **s["protocol"])
     assert r["recognised_frames"] > 50  # the loop candidates do produce revisits
-    # Issue #14's target: the map's mean error at most 30 % of odometry's (both trajectories
+    # The mapping target: the map's mean error at most 30 % of odometry's (both trajectories
     # aligned the same way to ground truth). Odometry alone drifts by ~50 m over the run's
     # 880 m; a map that merely follows odometry, or that keeps the look-alike closures ~86 m
     # away (the paper settings: ~34 m), fails this.
@@ -46,7 +52,7 @@ def _best_constant_yaw_bias() -> float:
 
 def test_ground_truth_reader_keeps_position_rows_only():
     """The GT file interleaves ``point2 t x y`` (positions) with ``angle t heading 0`` rows; only
-    positions may be read (issue #14). Positions of a drive along a ~167 m corridor spread over
+    positions may be read. Positions of a drive along a ~167 m corridor spread over
     ~100 m, move at most walking pace between 5 Hz rows, and their path length matches the
     odometry's (sum of |vx| dt) to within 10 %; heading rows would add jumps of ~|x| metres and
     a second, interleaved time series."""

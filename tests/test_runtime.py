@@ -66,6 +66,30 @@ def test_bad_config_names_the_field(tmp_path):
         load_config(bad)
 
 
+def test_the_plan_gives_every_process_its_topics_capacities_and_source(tmp_path):
+    from neoslam_stream.nodes.pipelines import build_plan
+    from neoslam_stream.runtime.config import DEFAULT_CAPACITY
+    from neoslam_stream.runtime.topology import RunError, Supervisor
+
+    assert set(DEFAULT_CAPACITY) == {"image", "odom", "groundtruth"}  # the runtime's own topics only
+    cfg = load_config("default", {"run": {"live": False}})
+    plan = build_plan(cfg)
+    assert plan.final_topic == "experience_map/pose" and "pose_cells/action" in plan.topics
+    sup = Supervisor(cfg, plan, tmp_path / "a", source_factory="pkg.cam:Camera")
+    for spec in [sup.worker_spec(w) for w in sup.groups] + [sup.monitor_spec(), sup.source_spec()]:
+        assert [str(t) for t in spec.topics] == [str(t) for t in plan.topics]
+    assert sup.source_spec().source.factory == "pkg.cam:Camera"
+    assert sup.source_spec().final_topic == "experience_map/pose"
+    # the back end's actions queue deep unless bus.capacity names them; the image ring stays small
+    assert sup.worker_spec("experience_map").capacities["pose_cells/action"] == 256
+    assert sup.worker_spec("A").capacities["image"] == 2
+    cfg = load_config("default", {"run": {"live": False}, "bus": {"capacity": {"pose_cells/action": 7}}})
+    sup = Supervisor(cfg, build_plan(cfg), tmp_path / "b")
+    assert sup.worker_spec("experience_map").capacities["pose_cells/action"] == 7
+    with pytest.raises(RunError, match="no factory given for the source kind 'synthetic'"):
+        sup.source_spec()
+
+
 # ---------------------------------------------------------------------------------------------
 def _start_run(tmp_path: Path, frames: int, rate: float, taus: list[float], mode: str = "lossless",
                extra: dict | None = None) -> subprocess.Popen:
@@ -98,6 +122,16 @@ def test_malformed_payload_is_counted_and_skipped(tmp_path):
         session.put(key, encode(Message("control", 0, 0.0, {"command": "noop"})))  # wrong type for a stage
         session.put(key, encode(Message("image", 10**6, 0.0, {"image": np.zeros((2, 2, 2, 2), np.uint8)}),
                                 validate=False))  # wrong shape
+        # a type no process of the run registered: refused, never passed on unchecked
+        unregistered = encode(Message("nobody_registered", 7, 0.0, {"x": 1}), validate=False)
+        for _ in range(3):  # until stage2 says it refused it (a sample can be lost on the way)
+            session.put(key_for(run_id, "emulated/1"), unregistered)
+            try:
+                _wait_stats(session, run_id, "stage2", timeout=10.0,
+                            until=lambda d: any("nobody_registered" in c for c in d.get("error_causes", {})))
+                break
+            except AssertionError:
+                continue
     finally:
         session.close()
     out = _finish(proc)
@@ -106,6 +140,8 @@ def test_malformed_payload_is_counted_and_skipped(tmp_path):
     s1 = report["stages"]["stage1"]
     assert s1["errors"] >= 2, s1  # the garbage and the 4-D image (the control msg has no schema issue)
     assert any("MessageError" in c for c in s1["error_causes"])
+    s2 = report["stages"]["stage2"]
+    assert any("'nobody_registered' has no registered schema" in c for c in s2["error_causes"]), s2
     # every real frame still went through
     assert report["frames_in"] == frames
     assert report["frames_out"] == frames

@@ -1,4 +1,4 @@
-"""Hardening of the runtime (#13, runtime side): a run's processes die with their supervisor, the
+"""Hardening of the runtime: a run's processes die with their supervisor, the
 monitor is supervised, loss is counted by frame numbers across restarts, the control topic obeys
 only its own supervisor, ``--resume`` starts at once and honours ``--max-frames``, a full disk never
 loses report.json.
@@ -22,9 +22,10 @@ from runhelpers import light_config as _cfg
 from runhelpers import read_report as _report
 
 from neoslam_stream.evaluation import read_tum
+from neoslam_stream.nodes.topics import ALGORITHM_TOPICS
 from neoslam_stream.runtime import files
 from neoslam_stream.runtime.bus import key_for
-from neoslam_stream.runtime.messages import Message, encode
+from neoslam_stream.runtime.messages import Message, encode, register_topics
 from neoslam_stream.runtime.monitor import FinalTracker, StatsCollector, build_report, write_report
 
 
@@ -96,7 +97,9 @@ def test_loss_stays_true_across_restarts_of_a_stage_and_of_the_monitor(tmp_path)
                                                  "rate": 10.0, "pacing": "fixed", "duration": 40.0},
                                     max_restarts=2))
     session, run_id = attach(run_dir)
-    # the test's own view of the final topic: which camera frames arrived
+    # the test's own view of the final topic: which camera frames arrived (this process decodes
+    # the algorithms' topics, so it registers them, as every process of the run does)
+    register_topics(ALGORITHM_TOPICS)
     seen = FinalTracker(entry_stages={"A"})
     sub = session.declare_subscriber(key_for(run_id, "experience_map/pose"), seen.on_sample)
     try:

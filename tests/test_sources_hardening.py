@@ -1,4 +1,4 @@
-"""Hostile inputs at the sources (issue #13): special files in an image folder, broken odometry
+"""Hostile inputs at the sources: special files in an image folder, broken odometry
 rows, images whose size header hides after 64 KB, valid but huge images, 16-bit and big-endian
 ROS images, and a folder without odometry. Each is counted with its cause and skipped, or
 converted, and the rest of the input is read normally."""

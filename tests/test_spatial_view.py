@@ -3,6 +3,7 @@
 import numpy as np
 import pytest
 
+import neoslam_stream.algorithms.interval_index as ii
 from neoslam_stream.algorithms.spatial_view import SpatialViewCells
 from neoslam_stream.nodes.spatial_view import make_node as make_stage
 from neoslam_stream.runtime.messages import Message
@@ -161,10 +162,28 @@ def test_state_round_trip_continues_identically():
     a = svc(theta_alpha=6, theta_sigma=8)
     for y in seq[:45]:
         a.compute(y)
-    b = svc()
+    b = svc(theta_alpha=6, theta_sigma=8)
     b.load_state_dict(a.state_dict())
     for y in seq[45:]:
         assert a.compute(y) == b.compute(y)
+
+
+def test_a_state_made_with_other_parameters_is_refused():
+    a = svc(theta_sigma=8)
+    for i in range(4):
+        a.compute(block(i))
+    state = a.state_dict()
+    with pytest.raises(ValueError, match=r"theta_sigma: the state was made with 8, the config has 4"):
+        svc().load_state_dict(state)
+    with pytest.raises(ValueError, match=r"sdr_size: the state was made with 256, the config has 512"):
+        svc(theta_sigma=8, sdr_size=512).load_state_dict(state)
+    # parameters a state does not depend on may differ; a state without "params" is taken as it is
+    b = svc(theta_sigma=8, theta_margin=1.0)
+    b.load_state_dict(state)
+    assert b.n_intervals == 4 and b.config.theta_margin == 1.0
+    c = svc()
+    c.load_state_dict({k: v for k, v in state.items() if k != "params"})
+    assert c.n_intervals == 4 and c.config.theta_sigma == 4
 
 
 def test_invalid_sdr_is_rejected():
@@ -230,10 +249,8 @@ def _brute_force_full(frames, theta_alpha, theta_rho, theta_sigma, omega):
 
 
 def test_index_compaction_gives_the_same_templates_as_a_brute_force_scan(monkeypatch):
-    import neoslam_stream.algorithms.spatial_view as sv
-
     # compact after every few frames, so scores come from the CSR part, the linked part and both
-    monkeypatch.setattr(sv, "COMPACT_MIN", 40)
+    monkeypatch.setattr(ii, "COMPACT_MIN", 40)
     rng = np.random.default_rng(3)
     places = [rng.choice(400, 30, replace=False) for _ in range(12)]
     frames = []
@@ -242,17 +259,17 @@ def test_index_compaction_gives_the_same_templates_as_a_brute_force_scan(monkeyp
             noisy = np.union1d(p[rng.random(30) > 0.1], rng.choice(400, 3))
             frames.append(noisy)
     params = dict(theta_alpha=24, theta_rho=2, theta_sigma=22, exclude_recent_intervals=2)
-    svc = sv.SpatialViewCells(sdr_size=400, **params)
+    svc = SpatialViewCells(sdr_size=400, **params)
     got = [svc.compute(f)["id"] for f in frames]
-    svc.compact()  # waits for a background merge still running
-    assert svc.merges >= 1 and svc._post.shape[0] > 0  # merges did happen, in the background
+    svc.index.compact()  # waits for a background merge still running
+    assert svc.index.merges >= 1 and svc.index._post.shape[0] > 0  # merges did happen, in the background
     expected = [o[0] for o in _brute_force_full(frames, params["theta_alpha"], params["theta_rho"],
                                                 params["theta_sigma"], params["exclude_recent_intervals"])]
     assert got == expected
     assert len(set(expected)) < len(frames)  # loop closures happened, so the test exercises them
 
 
-# ------------------------------------------------------------- bounded (sublinear) search (#16)
+# ------------------------------------------------------------- bounded (sublinear) search
 
 def _route_stream(n_frames, n_places, seed, noise, cells=32):
     """SDRs shaped like the neocortex's: 512 active columns of 2048, one winner cell in each, so
@@ -273,13 +290,11 @@ def _route_stream(n_frames, n_places, seed, noise, cells=32):
 
 @pytest.mark.parametrize("noise,theta_sigma", [(0.08, 440), (0.25, 300)])
 def test_bounded_search_equals_a_brute_force_scan_of_every_interval(monkeypatch, noise, theta_sigma):
-    import neoslam_stream.algorithms.spatial_view as sv
-
     # merges every few frames: the search reads the CSR part, a frozen part and the linked part
-    monkeypatch.setattr(sv, "COMPACT_MIN", 3000)
+    monkeypatch.setattr(ii, "COMPACT_MIN", 3000)
     frames = _route_stream(420, 25, seed=1, noise=noise)
     params = dict(theta_alpha=384, theta_rho=3, theta_sigma=theta_sigma, exclude_recent_intervals=3)
-    svc = sv.SpatialViewCells(**params)
+    svc = SpatialViewCells(**params)
     got = []
     for f in frames:
         r = svc.compute(f)
@@ -287,25 +302,23 @@ def test_bounded_search_equals_a_brute_force_scan_of_every_interval(monkeypatch,
     expected = _brute_force_full(frames, params["theta_alpha"], params["theta_rho"], theta_sigma,
                                  params["exclude_recent_intervals"])
     assert got == expected
-    assert svc.merges >= 3
+    assert svc.index.merges >= 3
     loops = sum(e[1] for e in expected)
     assert 0 < loops < len(frames)  # closures and frames without one (best_score below theta_sigma)
 
 
 def test_bounded_search_equals_exhaustive_scoring_on_a_long_stream(monkeypatch):
-    import neoslam_stream.algorithms.spatial_view as sv
-
-    monkeypatch.setattr(sv, "COMPACT_MIN", 20000)
+    monkeypatch.setattr(ii, "COMPACT_MIN", 20000)
     frames = _route_stream(2400, 70, seed=2, noise=0.12) + _route_stream(300, 40, seed=3, noise=0.5)
-    a = sv.SpatialViewCells(theta_sigma=455)
-    a.exhaustive = True
-    b = sv.SpatialViewCells(theta_sigma=455)
+    a = SpatialViewCells(theta_sigma=455)
+    a.index.exhaustive = True
+    b = SpatialViewCells(theta_sigma=455)
     read = 0
     for i, f in enumerate(frames):
         ra, rb = a.compute(f), b.compute(f)
         assert (ra, a.runner_up) == (rb, b.runner_up), i
-        read += b.last_search[0]
-    assert b.merges >= 5 and a.n_intervals > 500
+        read += b.index.last_search[0]
+    assert b.index.merges >= 5 and a.n_intervals > 500
     # and it is a bounded search: far fewer postings read than the index holds per frame
     assert read < 0.5 * sum(len(u) for u in b.unions) * len(frames) / 2
 
@@ -325,7 +338,7 @@ def test_bounded_search_edge_cases():
     assert (r["best_interval"], r["best_score"]) == (1, 6) and c.runner_up == (3, 6)
 
 
-# ------------------------------------------------------------- bit-sliced count over dense rows (#16)
+# ------------------------------------------------------------- bit-sliced count over dense rows
 
 def _dense_stream(n_frames, n_places, seed, noise):
     """Real SDRs' shape (docs/frontend.md): winner cell 0 of 512 of 2048 columns, so only ~2048
@@ -337,58 +350,55 @@ def _dense_stream(n_frames, n_places, seed, noise):
 
 @pytest.mark.parametrize("noise,theta_sigma", [(0.08, 440), (0.3, 250)])
 def test_bit_sliced_search_equals_a_brute_force_scan_of_every_interval(monkeypatch, noise, theta_sigma):
-    import neoslam_stream.algorithms.spatial_view as sv
-
     # rows appear early and while merges run (their lists then sit in all three parts)
-    monkeypatch.setattr(sv, "DENSE_MIN", 8)
-    monkeypatch.setattr(sv, "COMPACT_MIN", 3000)
+    monkeypatch.setattr(ii, "DENSE_MIN", 8)
+    monkeypatch.setattr(ii, "COMPACT_MIN", 3000)
     frames = _dense_stream(480, 25, seed=4, noise=noise)
     params = dict(theta_alpha=384, theta_rho=3, theta_sigma=theta_sigma, exclude_recent_intervals=3)
-    svc = sv.SpatialViewCells(**params)
-    svc.sliced = True
+    svc = SpatialViewCells(**params)
+    svc.index.sliced = True
     got, paths = [], []
     for f in frames:
         r = svc.compute(f)
         got.append((r["id"], r["is_loop_closure"], r["best_interval"], r["best_score"], *svc.runner_up))
-        paths.append(svc.last_path)
+        paths.append(svc.index.last_path)
     expected = _brute_force_full(frames, params["theta_alpha"], params["theta_rho"], theta_sigma,
                                  params["exclude_recent_intervals"])
     assert got == expected
-    assert paths.count("sliced") > 0.9 * len(frames) and svc.merges >= 3
-    assert 1000 < svc._n_dense - 1 < 2100  # the route's cells got rows, the random extra ones did not
+    assert paths.count("sliced") > 0.9 * len(frames) and svc.index.merges >= 3
+    assert 1000 < svc.index._n_dense - 1 < 2100  # the route's cells got rows, the random extra ones did not
     assert 0 < sum(e[1] for e in expected) < len(frames)
 
 
 def test_bit_sliced_search_across_blocks_and_limits_equals_exhaustive_scoring():
-    import neoslam_stream.algorithms.spatial_view as sv
-
     # > one block of SLICE_BLOCK intervals, loaded like a checkpoint (rows built from the lists)
     rng = np.random.default_rng(5)
     places = [np.sort(rng.choice(2048, 512, replace=False)) for _ in range(40)]
-    k = sv.SLICE_BLOCK + 3000
+    k = ii.SLICE_BLOCK + 3000
     unions = []
     for i in range(k):
         u = places[i % 40].copy()
         moved = rng.random(512) < 0.1
         u[moved] = rng.integers(0, 2048, int(moved.sum()))
         unions.append(np.unique(u).astype(np.uint32))
-    svc = sv.SpatialViewCells()
+    svc = SpatialViewCells()
     svc.load_state_dict({"params": [384, 3, 470, 3, 65536], "unions": unions, "start": np.arange(k) * 4,
                          "end": np.arange(k) * 4 + 3, "template": np.arange(k), "n_templates": k,
                          "current_template": k - 1, "t": 4 * k})
-    assert svc._n_dense - 1 > 1900
-    limits = [2, 63, 64, 65, 4097, sv.SLICE_BLOCK - 1, sv.SLICE_BLOCK, sv.SLICE_BLOCK + 1, k - 3]
+    index = svc.index
+    assert index._n_dense - 1 > 1900
+    limits = [2, 63, 64, 65, 4097, ii.SLICE_BLOCK - 1, ii.SLICE_BLOCK, ii.SLICE_BLOCK + 1, k - 3]
     for q in range(12):
         y = svc._validate(np.union1d(places[q * 3 % 40][rng.random(512) > 0.05], rng.choice(65536, 3)))
         for limit in limits:
-            svc.sliced = True
-            got = svc._top2_bounded(y, limit)
-            assert svc.last_path == "sliced"
-            assert got == svc._top2_exhaustive(y, limit), (q, limit)
-        svc.sliced = None  # the cost model picks the bit-sliced count for these real-shaped SDRs
-        assert svc._top2_bounded(y, k - 3) == svc._top2_exhaustive(y, k - 3) and svc.last_path == "sliced"
+            index.sliced = True
+            got = index.top2_bounded(y, limit)
+            assert index.last_path == "sliced"
+            assert got == index.top2_exhaustive(y, limit), (q, limit)
+        index.sliced = None  # the cost model picks the bit-sliced count for these real-shaped SDRs
+        assert index.top2_bounded(y, k - 3) == index.top2_exhaustive(y, k - 3) and index.last_path == "sliced"
     # SDRs spread over all 65536 cells keep short lists, no rows: the posting-list search
-    sparse = sv.SpatialViewCells()
+    sparse = SpatialViewCells()
     for _ in range(300):
         sparse.compute(rng.choice(65536, 512, replace=False))
-    assert sparse._n_dense == 1 and sparse.last_path == "postings"
+    assert sparse.index._n_dense == 1 and sparse.index.last_path == "postings"

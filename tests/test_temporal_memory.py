@@ -7,10 +7,10 @@ from neoslam_stream.algorithms.temporal_memory import TemporalMemory
 
 
 def tiny(**kw):
-    p = dict(columnDimensions=(4,), cellsPerColumn=3, activationThreshold=2, initialPermanence=0.6,
-             connectedPermanence=0.5, minThreshold=1, maxNewSynapseCount=3, permanenceIncrement=0.1,
-             permanenceDecrement=0.1, predictedSegmentDecrement=0.0, seed=42, maxSegmentsPerCell=10,
-             maxSynapsesPerSegment=10)
+    p = dict(columns=4, cells_per_column=3, activation_threshold=2, initial_permanence=0.6,
+             connected_permanence=0.5, min_threshold=1, max_new_synapse_count=3, permanence_increment=0.1,
+             permanence_decrement=0.1, predicted_segment_decrement=0.0, seed=42, max_segments_per_cell=10,
+             max_synapses_per_segment=10)
     p.update(kw)
     return TemporalMemory(**p)
 
@@ -45,7 +45,7 @@ def test_burst_winner_is_least_used_cell_lowest_index_on_ties():
 
 
 def test_best_matching_segment_by_active_potential_synapses():
-    tm = tiny(activationThreshold=3)
+    tm = tiny(activation_threshold=3)
     s4 = tm.createSegment(4)
     tm.add_synapse(s4, 0, 0.2)  # 1 active potential synapse
     s5 = tm.createSegment(5)
@@ -58,7 +58,7 @@ def test_best_matching_segment_by_active_potential_synapses():
 
 
 def test_new_segment_grows_min_of_max_new_and_prev_winners():
-    tm = tiny(maxNewSynapseCount=3)
+    tm = tiny(max_new_synapse_count=3)
     tm.compute([0, 2])  # winners: cells 0 and 6
     assert tm.getWinnerCells().tolist() == [0, 6]
     tm.compute([1])  # bursts without matching segment: new segment on cell 3
@@ -67,7 +67,7 @@ def test_new_segment_grows_min_of_max_new_and_prev_winners():
     pre, perm = tm.synapses_of_segment(segs[0])
     assert sorted(pre.tolist()) == [0, 6]  # min(3, 2) = 2 synapses
     np.testing.assert_allclose(perm, 0.6)
-    tm2 = tiny(maxNewSynapseCount=1)
+    tm2 = tiny(max_new_synapse_count=1)
     tm2.compute([0, 2])
     tm2.compute([1])
     pre, _ = tm2.synapses_of_segment(tm2.segments_of_cell(3)[0])
@@ -91,7 +91,7 @@ def test_adapt_increments_decrements_and_destroys_below_epsilon():
 
 
 def test_segment_destroyed_below_min_threshold():
-    tm = tiny(minThreshold=2, activationThreshold=2, permanenceDecrement=0.5)
+    tm = tiny(min_threshold=2, activation_threshold=2, permanence_decrement=0.5)
     seg = tm.createSegment(4)
     tm.add_synapse(seg, 0, 0.2)  # active, potential
     tm.add_synapse(seg, 1, 0.2)  # active, potential
@@ -100,7 +100,7 @@ def test_segment_destroyed_below_min_threshold():
     # column 1 bursts, the segment matches (pot 2): adapt leaves 2 synapses >= minThreshold
     tm.compute([1], learn=True)
     assert tm.segments_of_cell(4) == [seg]
-    tm2 = tiny(minThreshold=2, activationThreshold=2, permanenceDecrement=0.5)
+    tm2 = tiny(min_threshold=2, activation_threshold=2, permanence_decrement=0.5)
     s = tm2.createSegment(4)
     tm2.add_synapse(s, 0, 0.2)
     tm2.add_synapse(s, 1, 0.2)
@@ -111,7 +111,7 @@ def test_segment_destroyed_below_min_threshold():
 
 
 def test_punishment_of_predicted_but_inactive_column():
-    tm = tiny(predictedSegmentDecrement=0.05)
+    tm = tiny(predicted_segment_decrement=0.05)
     seg = tm.createSegment(4)
     tm.add_synapse(seg, 0, 0.6)
     tm.add_synapse(seg, 1, 0.6)
@@ -125,7 +125,7 @@ def test_punishment_of_predicted_but_inactive_column():
 
 
 def test_segment_eviction_by_smallest_sum_of_squared_permanences():
-    tm = tiny(maxSegmentsPerCell=2)
+    tm = tiny(max_segments_per_cell=2)
     a = tm.createSegment(5)
     tm.add_synapse(a, 11, 0.9)  # sum of squares 0.81
     b = tm.createSegment(5)
@@ -137,7 +137,7 @@ def test_segment_eviction_by_smallest_sum_of_squared_permanences():
 
 
 def test_synapse_cap_removes_weakest_non_candidates():
-    tm = tiny(maxSynapsesPerSegment=4, maxNewSynapseCount=2, activationThreshold=3)
+    tm = tiny(max_synapses_per_segment=4, max_new_synapse_count=2, activation_threshold=3)
     seg = tm.createSegment(4)
     tm.add_synapse(seg, 0, 0.3)  # onto a future candidate (prev winner): kept
     tm.add_synapse(seg, 9, 0.2)
@@ -154,7 +154,7 @@ def test_synapse_cap_removes_weakest_non_candidates():
 
 def test_repeated_sequence_becomes_predicted_with_default_parameters():
     rng = np.random.default_rng(7)
-    tm = TemporalMemory(columnDimensions=(2048,), cellsPerColumn=32)  # htm.core defaults
+    tm = TemporalMemory(columns=2048, cells_per_column=32)  # htm.core defaults
     seq = [np.sort(rng.choice(2048, 40, replace=False)) for _ in range(4)]  # A B C D
     for _ in range(12):
         anomalies = [(tm.compute(x), tm.anomaly)[1] for x in seq]
@@ -164,8 +164,8 @@ def test_repeated_sequence_becomes_predicted_with_default_parameters():
 def test_deterministic_for_a_seed():
     rng = np.random.default_rng(3)
     xs = [np.sort(rng.choice(256, 20, replace=False)) for _ in range(60)]
-    a = tiny(columnDimensions=(256,), cellsPerColumn=8, tie_break="random", seed=5)
-    b = tiny(columnDimensions=(256,), cellsPerColumn=8, tie_break="random", seed=5)
+    a = tiny(columns=256, cells_per_column=8, tie_break="random", seed=5)
+    b = tiny(columns=256, cells_per_column=8, tie_break="random", seed=5)
     for x in xs:
         np.testing.assert_array_equal(a.compute(x), b.compute(x))
 
@@ -173,10 +173,10 @@ def test_deterministic_for_a_seed():
 def test_save_load_mid_stream_gives_identical_outputs():
     rng = np.random.default_rng(9)
     xs = [np.sort(rng.choice(512, 40, replace=False)) for _ in range(10)] * 4
-    a = tiny(columnDimensions=(512,), cellsPerColumn=8, maxNewSynapseCount=5)
+    a = tiny(columns=512, cells_per_column=8, max_new_synapse_count=5)
     for x in xs[:23]:
         a.compute(x)
-    b = tiny(columnDimensions=(512,), cellsPerColumn=8, maxNewSynapseCount=5)
+    b = tiny(columns=512, cells_per_column=8, max_new_synapse_count=5)
     b.load_state_dict(a.state_dict())
     for x in xs[23:]:
         np.testing.assert_array_equal(a.compute(x), b.compute(x))
@@ -185,12 +185,12 @@ def test_save_load_mid_stream_gives_identical_outputs():
 
 
 def test_mt19937_matches_std_mt19937():
-    from neoslam_stream.algorithms.temporal_memory import _mt_next, _mt_seed
+    from neoslam_stream.algorithms.temporal_memory_kernels import mt_next, mt_seed
 
-    mt = _mt_seed(np.uint32(42))
+    mt = mt_seed(np.uint32(42))
     idx = np.array([624], dtype=np.int64)
     # the first outputs of std::mt19937(42), as documented for g++
-    assert [int(_mt_next(mt, idx)) for _ in range(3)] == [1608637542, 3421126067, 4083286876]
+    assert [int(mt_next(mt, idx)) for _ in range(3)] == [1608637542, 3421126067, 4083286876]
 
 
 def test_bad_columns_rejected():
@@ -227,7 +227,7 @@ def test_load_state_from_another_configuration_rejected():
 
 
 def test_synapse_cap_ties_go_to_the_lower_synapse_id_not_the_lower_slot():
-    tm = tiny(maxSynapsesPerSegment=4, maxNewSynapseCount=3, activationThreshold=3)
+    tm = tiny(max_synapses_per_segment=4, max_new_synapse_count=3, activation_threshold=3)
     seg = tm.createSegment(4)
     tm.add_synapse(seg, 0, 0.3)  # id 0: onto a previous winner
     tm.add_synapse(seg, 8, 0.05)  # id 1: inactive, falls below epsilon and is destroyed

@@ -67,16 +67,16 @@ def test_parity_with_htm_core_trace():
 # punishment below minThreshold) and hits the synapse cap 319 times; "tight" destroys 123 (74 of
 # them evicted at maxSegmentsPerCell) and hits the cap 494 times: synapse ids, slot orders and the
 # free lists all have to follow htm.core's for these to match.
-SMALL = dict(columnDimensions=(256,), cellsPerColumn=8, activationThreshold=3, initialPermanence=0.3,
-             connectedPermanence=0.5, minThreshold=2, maxNewSynapseCount=6, permanenceIncrement=0.05,
-             permanenceDecrement=0.08, predictedSegmentDecrement=0.05, seed=7, maxSegmentsPerCell=3,
-             maxSynapsesPerSegment=10)
+SMALL = dict(columns=256, cells_per_column=8, activation_threshold=3, initial_permanence=0.3,
+             connected_permanence=0.5, min_threshold=2, max_new_synapse_count=6, permanence_increment=0.05,
+             permanence_decrement=0.08, predicted_segment_decrement=0.05, seed=7, max_segments_per_cell=3,
+             max_synapses_per_segment=10)
 HTM_CORE_RUNS = {
     "small": (SMALL, (1688, 9564), [
         "1475de48bbad", "7b331c78b709", "3e612274ae53", "41685e8505b0", "43d6db209eda",
         "f302effd1051", "84e9bcab7549", "b98bc9da750a", "78ca11428a8d", "fb1cc06eac64"]),
-    "tight": ({**SMALL, "cellsPerColumn": 4, "seed": 1, "maxSegmentsPerCell": 2, "maxSynapsesPerSegment": 7,
-               "maxNewSynapseCount": 5}, (1446, 7250), [
+    "tight": ({**SMALL, "cells_per_column": 4, "seed": 1, "max_segments_per_cell": 2, "max_synapses_per_segment": 7,
+               "max_new_synapse_count": 5}, (1446, 7250), [
         "ea9ca91e0463", "c7c0d7adc33b", "a1c1f2beca34", "43d8b2bc4c13", "3dbf7d572d84",
         "51b0e529924d", "1e183b87c702", "05487041bf34", "fe3188011332", "93ade184aea4"]),
 }

@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 from neoslam_stream.algorithms.ratslam.visual_odometry import VisualOdometry, best_shift, profile
-from neoslam_stream.nodes.ratslam import VisualOdometryNode
 from neoslam_stream.runtime.messages import Message
 
 
@@ -77,6 +76,8 @@ def test_real_frame_interval_fixes_rotation_after_a_dropped_frame():
 
 
 def test_stage_publishes_odometry_with_image_intervals():
+    from neoslam_stream.nodes.ratslam import VisualOdometryNode
+
     st = VisualOdometryNode(camera_fov_deg=50, camera_hz=10)
     img = np.tile((np.sin(np.linspace(0, 20, 200)) * 100 + 120)[None], (30, 1)).astype(np.uint8)
     frames = [img, np.roll(img, 4, axis=1)]

@@ -1,14 +1,16 @@
-"""The algorithms, WHAT is computed: plain classes, each with one pydantic config model passed
-whole (``SpatialViewCells(SpatialViewConfig(...))``, or keyword overrides of its defaults).
+"""The algorithms, WHAT is computed: plain classes, each with one pydantic config passed whole.
 
-No transport, no processes, no files except the explicit load/save of their own state; nothing
-here imports ``neoslam_stream.runtime``, ``neoslam_stream.nodes`` or zenoh (a test checks it).
-Only ``features``/``backbones`` import torch, and ``features`` only when an extractor is built.
+No transport, no processes; nothing here imports ``neoslam_stream.runtime``, ``.nodes`` or zenoh
+(tests/test_architecture.py). Files: only their own state and ``weights`` (weight files, ``.bin``).
+``backbones`` imports torch; ``features``, ``projector``, ``projection``, ``weights`` only when used.
 
-* ``features``         A  VisualFeatureExtractor   image -> float32 feature vector
-* ``projector``        B  BinaryProjector          features -> 512 sorted bits of 2048 (sLSBH)
-* ``temporal_memory``  C  TemporalMemory           htm.core-equivalent Temporal Memory
-* ``neocortex``        C  Neocortex                bits -> winner cells
-* ``spatial_view``     D  SpatialViewCells         SDR -> template id, loop closure
-* ``ratslam``             PoseCellNetwork, ExperienceMap, LocalViewCells, VisualOdometry
+* ``frontend``  FrontEnd: A -> B -> C -> D, image -> template id, loop closure (arrays in and out)
+* ``features`` (A, with ``backbones``, ``weights``)       image -> feature vector
+* ``projector``, ``projection`` (B)                        features -> sLSBH bits (matrix, kernels)
+* ``neocortex``, ``temporal_memory`` (+ ``_kernels``) (C)  bits -> winner cells (HTM Temporal Memory)
+* ``spatial_view`` (D), ``interval_index``, ``interval_kernels``   SDR -> template id, loop closure
+* ``sequence``, ``oracle``  a sequence filter over D's closures; templates from ground truth
+* ``backend``   BackEnd: yaw bias, odometry gate, pose cells, experience map
+* ``ratslam``   PoseCellNetwork, ExperienceMap, LocalViewCells, VisualOdometry, YawBiasEstimator, ...
+* ``errors``, ``_config``   InvalidInput; building a config from a model, a dict or keywords
 """

@@ -7,7 +7,7 @@ is the set of winner cells (~512 indices of 65536) plus the raw anomaly for the 
 With htm.core's lowest-index tie rule (``tie_break: lowest``, the default, what the ROS 2 NeoSLAM
 runs) nearly every winner is cell 0 of its column, so the SDR is in effect the input re-indexed.
 ``tie_break: random`` (NuPIC's rule, what the original NeoSLAM ran) puts a column's first segment
-on a random cell, but with minThreshold 1 that segment goes on matching (one active presynaptic
+on a random cell, but with min_threshold 1 that segment goes on matching (one active presynaptic
 cell of its ~20 is enough), so the column keeps that cell: nearly every winner is the column's
 usual cell, the input re-indexed by a fixed per-column permutation, and still no sequence
 context. Measurements: docs/temporal_memory.md.
@@ -15,46 +15,26 @@ context. Measurements: docs/temporal_memory.md.
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
 from ._config import make_config
-from .temporal_memory import TemporalMemory, TemporalMemoryConfig
+from .temporal_memory import Count, Permanence, Positive, TemporalMemory, TemporalMemoryConfig
 
 
-class NeocortexConfig(BaseModel):
-    """NeoSLAM's TM parameters (identical in the original and the ROS 2 NeoSLAM)."""
+class NeocortexConfig(TemporalMemoryConfig):
+    """The Temporal Memory's parameters with NeoSLAM's values as defaults (identical in the
+    original and the ROS 2 NeoSLAM; the others are htm.core's defaults)."""
 
-    model_config = ConfigDict(extra="forbid")
-
-    columns: int = Field(2048, ge=1)
-    cells_per_column: int = Field(32, ge=1)
-    activation_threshold: int = 4
-    initial_permanence: float = 0.55
-    connected_permanence: float = 0.5
-    min_threshold: int = 1
-    max_new_synapse_count: int = 20
-    permanence_increment: float = 0.01
-    permanence_decrement: float = 0.01
-    predicted_segment_decrement: float = 0.0005
-    max_segments_per_cell: int = 100
-    max_synapses_per_segment: int = 100
-    seed: int = 42
-    tie_break: Literal["lowest", "random"] = "lowest"
-
-    def temporal_memory(self) -> TemporalMemoryConfig:
-        """The same parameters under htm.core's names: the Temporal Memory's own config."""
-        return TemporalMemoryConfig(
-            columnDimensions=(self.columns,), cellsPerColumn=self.cells_per_column,
-            activationThreshold=self.activation_threshold, initialPermanence=self.initial_permanence,
-            connectedPermanence=self.connected_permanence, minThreshold=self.min_threshold,
-            maxNewSynapseCount=self.max_new_synapse_count, permanenceIncrement=self.permanence_increment,
-            permanenceDecrement=self.permanence_decrement,
-            predictedSegmentDecrement=self.predicted_segment_decrement, seed=self.seed,
-            maxSegmentsPerCell=self.max_segments_per_cell, maxSynapsesPerSegment=self.max_synapses_per_segment,
-            tie_break=self.tie_break)
+    activation_threshold: Count = 4
+    initial_permanence: Permanence = 0.55
+    min_threshold: Count = 1
+    permanence_increment: Permanence = 0.01
+    permanence_decrement: Permanence = 0.01
+    predicted_segment_decrement: Permanence = 0.0005
+    max_segments_per_cell: Positive = 100
+    max_synapses_per_segment: Positive = 100
 
 
 class Neocortex:
@@ -67,7 +47,7 @@ class Neocortex:
 
     def __init__(self, config: NeocortexConfig | None = None, **overrides: Any) -> None:
         self.config = make_config(NeocortexConfig, config, overrides)
-        self.tm = TemporalMemory(self.config.temporal_memory())
+        self.tm = TemporalMemory(self.config)
         self.steps = 0
         self.anomaly_sum = 0.0
 
@@ -98,6 +78,8 @@ class Neocortex:
         return {"tm": self.tm.state_dict(), "steps": self.steps, "anomaly_sum": self.anomaly_sum}
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
+        """Restore a :meth:`state_dict`; the Temporal Memory refuses a state made with other
+        parameters."""
         self.tm.load_state_dict(st["tm"])
         self.steps = int(st["steps"])
         self.anomaly_sum = float(st["anomaly_sum"])

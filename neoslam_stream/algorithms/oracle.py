@@ -1,29 +1,16 @@
-"""The oracle front end: template ids from ground truth instead of images (issue #14, a diagnosis tool).
+"""The oracle front end: template ids from ground truth instead of images (a diagnosis tool).
 
-It replaces A, B, C and D (`neoslam run --oracle-templates`), so the back end (pose cells,
-experience map) gets the best template stream a place-recognition front end could give. Comparing
-its map with a real run separates the front end's error from the back end's: a map that is bad
-with the oracle is the back end's fault, and the distance between the oracle's map and a run's is
-what the front end costs.
-
-Per frame, with the true pose (x, y, theta):
-
-* a template j is a candidate when its place p_j (the true position of the frame that created it)
-  is within ``radius_m`` of the true position and its heading within ``heading_tolerance_deg`` of
-  the true heading (a camera facing the other way sees another view, so with the default 45 deg the
-  oracle is the best a forward camera's front end could do; 180 closes every revisit);
-* the nearest candidate is the frame's template; with no candidate a new template is created
-  here (ids consecutive from 0);
-* a loop closure is a match to a template the robot had left before (a return to a place): every
-  frame of a return is one, as every frame D matches to an older interval is, while the frames of
-  a template's first visit are not;
-* the score is the distance to the matched template's place (m) and the runner-up's score the
-  distance to the second-nearest candidate (None when there is none).
-
-``radius_m`` defaults (``None``) to the experience map's spacing,
-``exp_delta_pc_threshold * pc_cell_x_size`` of the run's pose cells (0.5 m for the shipped configs'
-0.25 m cells and threshold 2): one template per experience, so that every closure the oracle
-makes is within one experience spacing of the truth.
+It replaces A, B, C and D (``neoslam run --oracle-templates``), so the back end gets the best
+template stream a place-recognition front end could give: a map that is bad with the oracle is
+the back end's fault, and the distance between the oracle's map and a run's is what the front
+end costs. Per frame, with the true pose (x, y, theta), a template is a candidate when its place
+(the true pose of the frame that created it) is within ``radius_m`` and its heading within
+``heading_tolerance_deg`` (a camera facing the other way sees another view; 180 closes every
+revisit); the nearest candidate is the frame's template, else a new one (ids consecutive from 0).
+A loop closure is a match to a template the robot had left before; the score is the distance to
+the match and the runner-up's score the distance to the second-nearest candidate. ``radius_m``
+defaults to the experience map's spacing, ``exp_delta_pc_threshold * pc_cell_x_size`` of the
+run's pose cells: one template per experience.
 """
 
 from __future__ import annotations

@@ -1,22 +1,16 @@
-"""Sequence consistency of loop closures (issue #14): a SeqSLAM-style window over D's matches.
+"""Sequence consistency of loop closures: a SeqSLAM-style window over D's matches.
 
-Stage D proposes, for frame t, the best older interval k* whose score s_k* exceeds theta_sigma.
-One frame's best match is often wrong where places look alike (door frames, repeated textures):
-the paper hoped that C's sequence context would prevent that, but with the paper's parameters C
-is a fixed re-indexing. This filter asks for the sequence context explicitly: a closure of frame
-t onto the reference frame m_t (the first frame of interval k*) is accepted only when each of the
-``length`` previous frames t-i (i = 1..length) also had a candidate, and its reference frame
-m_{t-i} lies within ``i * max_step + slack`` frames of m_t. A robot that comes back to a place
-sees the places before it again too, in either direction (|m_t - m_{t-i}| grows by at most
-``max_step`` reference frames per query frame); an isolated look-alike is refused. ``slack``
-absorbs the interval granularity (an interval spans up to theta_rho + 1 frames).
-
-``min_gap_frames``: intervals opened fewer than this many frames before t are no candidates at all
-(D leaves them out before it picks the best). The paper excludes only the omega newest intervals
-(a dozen frames); a robot that moves slowly or turns on the spot sees the same view for longer,
-and a "closure" onto the place it left a second ago makes the back end jump back along its path.
-
-``length = 0`` and ``min_gap_frames = 0`` switch the filter off (the paper's rule).
+One frame's best match is often wrong where places look alike, and with the paper's parameters
+C adds no sequence context; this filter asks for it explicitly. A closure of frame t onto the
+reference frame m_t (the first frame of interval k*) is accepted only when each of the
+``length`` previous frames t-i also had a candidate whose reference frame m_{t-i} lies within
+``i * max_step + slack`` frames of m_t: a robot that comes back to a place sees the places before
+it again too, in either direction, while an isolated look-alike is refused. ``slack`` absorbs the
+interval granularity (an interval spans up to theta_rho + 1 frames). ``min_gap_frames``:
+intervals opened fewer frames before t are no candidates at all (a slow or turning robot sees the
+same view for longer than the omega newest intervals, and a "closure" onto the place it just left
+makes the back end jump back). ``length = 0`` and ``min_gap_frames = 0`` switch the filter off
+(the paper's rule).
 """
 
 from __future__ import annotations
@@ -44,25 +38,22 @@ class SequenceFilter:
     """Accepts a loop closure only after a run of consistent candidates (module docstring)."""
 
     def __init__(self, config: SequenceConfig | None = None, **overrides: Any) -> None:
-        self.config = cfg = make_config(SequenceConfig, config, overrides)
-        self.length = cfg.length
-        self.max_step = cfg.max_step
-        self.slack = cfg.slack
-        self.min_gap = cfg.min_gap_frames
+        self.config = make_config(SequenceConfig, config, overrides)
         #: (frame, reference frame or -1 when the frame had no candidate), the newest last
-        self.history: deque[tuple[int, int]] = deque(maxlen=max(self.length, 1))
+        self.history: deque[tuple[int, int]] = deque(maxlen=max(self.config.length, 1))
         self.refused = 0
 
     @property
     def enabled(self) -> bool:
-        return self.length > 0
+        return self.config.length > 0
 
     def consistent(self, t: int, ref: int) -> bool:
         """Whether frames t-1 .. t-length all had candidates within i*max_step + slack of ``ref``."""
+        cfg = self.config
         by_frame = dict(self.history)
-        for i in range(1, self.length + 1):
+        for i in range(1, cfg.length + 1):
             m = by_frame.get(t - i, -1)
-            if m < 0 or abs(ref - m) > i * self.max_step + self.slack:
+            if m < 0 or abs(ref - m) > i * cfg.max_step + cfg.slack:
                 return False
         return True
 

@@ -1,23 +1,16 @@
-"""Trajectory and map evaluation against ground truth, and the map plot.
+"""Trajectory and map evaluation against ground truth, and the map plot (docs/evaluation.md).
 
-* The paper's metric (as the NeoSLAM / OpenRatSLAM2 scripts compute it): for every experience
-  node, the ground-truth sample matched in time; subtract the first point of each sequence (no
-  rotation or scale alignment); per-node Euclidean error; mean and max.
-* APE: per-frame trajectory error after a least-squares SE(2) alignment (Umeyama, no scale) of the
-  estimate onto the ground truth; mean, RMSE and max. Our own implementation (evo is GPL-3.0).
-* Loop closures: precision/recall when ground truth is known (a closure is correct when the
-  place it matched, the true position of its matched frame in ``closures.csv``, or else of the
-  frame that created its template, is within ``radius`` metres of the current true position).
-* ``map.png``: experience map, ground truth and odometry in one plot, loop closures marked.
-* Online floor (issue #14): until the robot first returns to a place it has seen, no place
-  recognition can correct its pose, so with wheel odometry its online pose there is at best dead
-  reckoning from the start. :func:`online_floor` is the APE of a trajectory that is the odometry
-  from the true start pose until that first return and exact from then on: what an online pose
-  cannot beat on that run unless the odometry was calibrated beforehand.
+* The paper's metric (as the NeoSLAM / OpenRatSLAM2 scripts compute it): each sequence minus its
+  first point (no rotation or scale alignment), per-point Euclidean error; mean and max.
+* APE: per-frame error after a least-squares SE(2) alignment (Umeyama, no scale) of the estimate
+  onto the ground truth; mean, RMSE and max. Our own implementation (evo is GPL-3.0).
+* Loop closures: precision/recall, a closure being correct when the true position of the place it
+  matched lies within ``radius`` metres of the current true position.
+* Online floor: until the robot first returns to a place, no recognition can correct its pose;
+  :func:`online_floor` is the APE of the odometry until that first return, exact from then on.
 
-``evaluate_run(run_dir)`` reads a run folder (``trajectory.tum``, ``map.json``, ``templates.csv``,
-``groundtruth.tum``, ``odometry.tum``) and writes ``evaluation.json`` and ``map.png``;
-``neoslam evaluate RUN_DIR [--gt FILE]`` does the same from the command line.
+``evaluate_run(run_dir)`` (``neoslam evaluate RUN_DIR``) reads a run folder and writes
+``evaluation.json`` and ``map.png`` (experience map, ground truth and odometry, closures marked).
 """
 
 from __future__ import annotations

@@ -12,7 +12,6 @@ import numpy as np
 
 # MAX_PIXELS: frames larger than this are refused (a corrupt header can claim gigapixels)
 from ..runtime.imageinfo import MAX_PIXELS, too_large, truncation
-from ..runtime.messages import Message
 from ..runtime.node import StageInputError
 
 #: ITU-R BT.601 luma weights, the ones OpenCV's and the ROS 2 NeoSLAM's grey conversion use.
@@ -32,13 +31,13 @@ def _check_shape(img: np.ndarray) -> np.ndarray:
     return img
 
 
-def decode_rgb(msg: Message) -> np.ndarray:
-    """Return the frame as an HxWx3 uint8 **RGB** array (grey frames are replicated to 3 channels).
+def decode_rgb(data: dict) -> np.ndarray:
+    """An ``image`` message's data as an HxWx3 uint8 **RGB** array (grey frames are replicated to 3
+    channels).
 
     Accepts raw arrays with ``encoding`` rgb8 (default), bgr8, mono8, rgba8/bgra8, and compressed
     JPEG/PNG bytes. Raises :class:`StageInputError` with the cause for anything it cannot use.
     """
-    data = msg.data
     if data.get("image") is not None:
         img = _check_shape(np.asarray(data["image"]))
         if img.dtype != np.uint8:
@@ -89,13 +88,21 @@ def to_grey(rgb: np.ndarray) -> np.ndarray:
     return rgb.astype(np.float32) @ _LUMA
 
 
-def decode_grey(msg: Message) -> np.ndarray:
-    """The frame as HxW float32 grey levels in [0, 255]."""
-    data = msg.data
+def decode_grey(data: dict) -> np.ndarray:
+    """An ``image`` message's data as HxW float32 grey levels in [0, 255]."""
     img = data.get("image")
     if img is not None and np.asarray(img).ndim == 2:
         g = _check_shape(np.asarray(img))
         if g.dtype != np.uint8:
             raise StageInputError(f"image dtype {g.dtype} unsupported; expected uint8")
         return g.astype(np.float32)
-    return to_grey(decode_rgb(msg))
+    return to_grey(decode_rgb(data))
+
+
+def camera_pixels(data: dict) -> np.ndarray:
+    """The frame as OpenRatSLAM reads it: grey frames as HxW, colour frames as HxWx3 (the RatSLAM
+    stages sum the channels as the C++ does, rather than using luma weights)."""
+    raw = data.get("image")
+    if raw is not None and np.asarray(raw).ndim == 2:
+        return decode_grey(data)
+    return decode_rgb(data)

@@ -51,7 +51,7 @@ class FeatureNode(Node):
             if not self.extractor.keep(m.frame):
                 strided += 1
                 continue
-            rgbs.append(decode_rgb(m))
+            rgbs.append(decode_rgb(m.data))
             keep.append(m)
         return keep, rgbs, strided
 
@@ -60,7 +60,7 @@ class FeatureNode(Node):
             return {}
         return {"backbone": self.extractor.backbone, "backbone_is_random": self.extractor.backbone == "random_alexnet",
                 "weights": self.extractor.weights_source, "feature_dim": self.extractor.output_dim,
-                "device": str(self.extractor.device), "frame_stride": self.extractor.frame_stride}
+                "device": str(self.extractor.device), "frame_stride": self.config.frame_stride}
 
 
 def make_node(**params: Any) -> FeatureNode:

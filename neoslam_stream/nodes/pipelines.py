@@ -11,19 +11,39 @@ from typing import Any
 
 from ..runtime.node import NodeSpec
 from ..runtime.topology import PipelinePlan
+from .topics import ALGORITHM_TOPICS, EXPERIENCE_POSE, POSE_CELL_ACTION
 
 RECORDER = "neoslam_stream.nodes.recorder:make_node"
 RATSLAM_NODES = "neoslam_stream.nodes.ratslam"
 ROS2_OUT = "neoslam_stream.nodes.ros2_out:make_node"
 #: the recorder reads these; it must not lose a row when the experience map's worker is busy
 RECORDER_CAPACITY = {"visual_template": 4096, "experience_map/pose": 4096, "experience_map/map": 4}
+#: the back end's input queues unless bus.capacity names them: actions are tiny, and path
+#: integration must not lose one
+BACKEND_CAPACITY = {str(POSE_CELL_ACTION): 256}
 
 
 def build_emulated(cfg: Any) -> PipelinePlan:
-    from ..runtime.emulated import emulated_pipeline
+    from ..runtime.emulated import EMULATED, emulated_pipeline
 
     specs = emulated_pipeline(cfg.emulated.tau_ms, cfg.emulated.busy)
-    return PipelinePlan(specs, final_topic=f"emulated/{len(specs)}", entry_stages=[specs[0].name])
+    return PipelinePlan(specs, final_topic=f"emulated/{len(specs)}", entry_stages=[specs[0].name],
+                        topics=[EMULATED])
+
+
+def _backend_plan(specs: list[NodeSpec], entry_stages: list[str], source_topics: list[str]) -> PipelinePlan:
+    """A plan that ends in the back end: a frame is done when its experience-map pose arrives."""
+    return PipelinePlan(specs, final_topic=str(EXPERIENCE_POSE), entry_stages=entry_stages,
+                        consumed_source_topics=source_topics, topics=list(ALGORITHM_TOPICS),
+                        capacity=dict(BACKEND_CAPACITY))
+
+
+def recorder_params(cfg: Any) -> dict[str, Any]:
+    """The recorder's parameters: with ``ros2_out.mcap``, the ROS 2 messages of outputs.mcap."""
+    ros = getattr(cfg, "ros2_out", None)
+    if ros is None or not ros.mcap:
+        return {}
+    return {"mcap": {**ros.message_params(), "map_period_s": ros.mcap_map_period_s}}
 
 
 def _backend_specs(cfg: Any, specs: list[NodeSpec]) -> None:
@@ -36,9 +56,7 @@ def _backend_specs(cfg: Any, specs: list[NodeSpec]) -> None:
     specs.append(NodeSpec("experience_map", f"{RATSLAM_NODES}:make_experience_map_node",
                           cfg.experience_map.model_dump()))
     ros = getattr(cfg, "ros2_out", None)
-    rec_params = {} if ros is None or not ros.mcap else {
-        "mcap": {**ros.message_params(), "map_period_s": ros.mcap_map_period_s}}
-    specs.append(NodeSpec("recorder", RECORDER, rec_params, host="experience_map",
+    specs.append(NodeSpec("recorder", RECORDER, recorder_params(cfg), host="experience_map",
                           capacity=dict(RECORDER_CAPACITY), observer=True))
     if ros is not None and ros.format:
         specs.append(NodeSpec("ros2_out", ROS2_OUT, {**ros.message_params(), "format": ros.format,
@@ -53,39 +71,12 @@ def _source_topics(cfg: Any) -> list[str]:
     return ["image"] if cfg.odometry == "visual" else ["image", "odom"]
 
 
-def neoslam_feature_params(cfg: Any) -> tuple[dict[str, Any], dict[str, Any]]:
-    """Stage A's and B's parameters, with ``backbone: auto`` decided here so that B knows its
-    input size (the dimension of the backbone that will run)."""
-    from ..algorithms.features import FEATURE_DIMS, find_alexnet_weights
-
-    feats = cfg.features.model_dump()
-    backbone = feats["backbone"]
-    if backbone == "auto":
-        try:
-            found = find_alexnet_weights(feats["weights_path"]) is not None or feats["download_weights"]
-        except FileNotFoundError:
-            found = False
-        backbone = "alexnet" if found else "efficientnet_lite0"
-        feats["backbone"] = backbone
-    proj = cfg.projector.model_dump()
-    proj["input_dim"] = FEATURE_DIMS[backbone]
-    return feats, proj
-
-
 def build_neoslam(cfg: Any) -> PipelinePlan:
     """NeoSLAM: A (features), B (projector), C (neocortex), D (spatial-view cells), RatSLAM back end."""
-    feats, proj = neoslam_feature_params(cfg)
-    if proj["device"] == "auto":  # asked for explicitly (the default is cpu): torch decides
-        import torch
-
-        proj["device"] = "cuda" if torch.cuda.is_available() else "cpu"
+    resolved = cfg.front_end().resolved()  # "auto" decided here, once per run
+    feats, proj = resolved.features.model_dump(), resolved.projector.model_dump()
     if proj["device"] != "cpu":
         # B in torch on a device: fused with A in one node there, so only bits leave the device
-        if feats["device"] == "auto":
-            feats["device"] = proj["device"]
-        elif feats["device"] != proj["device"]:
-            raise ValueError(f"projector.device {proj['device']} needs features.device {proj['device']} or "
-                             f"auto (A and B share the device), not {feats['device']}")
         front = [NodeSpec("A", "neoslam_stream.nodes.features:make_fused_node",
                           {"features": feats, "projector": proj}, threads=cfg.features.threads)]
     else:
@@ -95,16 +86,14 @@ def build_neoslam(cfg: Any) -> PipelinePlan:
         NodeSpec("C", "neoslam_stream.nodes.neocortex:make_node", cfg.neocortex.model_dump()),
         NodeSpec("D", "neoslam_stream.nodes.spatial_view:make_node", cfg.spatial_view.model_dump())]
     _backend_specs(cfg, specs)
-    return PipelinePlan(specs, final_topic="experience_map/pose", entry_stages=["A"],
-                        consumed_source_topics=_source_topics(cfg))
+    return _backend_plan(specs, ["A"], _source_topics(cfg))
 
 
 def build_ratslam(cfg: Any) -> PipelinePlan:
     """The baseline: RatSLAM's local-view cells instead of NeoSLAM's front end."""
     specs = [NodeSpec("local_view", f"{RATSLAM_NODES}:make_local_view_node", cfg.local_view.model_dump())]
     _backend_specs(cfg, specs)
-    return PipelinePlan(specs, final_topic="experience_map/pose", entry_stages=["local_view"],
-                        consumed_source_topics=_source_topics(cfg))
+    return _backend_plan(specs, ["local_view"], _source_topics(cfg))
 
 
 def oracle_params(cfg: Any) -> dict[str, Any]:
@@ -122,8 +111,7 @@ def build_oracle(cfg: Any) -> PipelinePlan:
     front end. Needs a source with ground truth."""
     specs = [NodeSpec("oracle", "neoslam_stream.nodes.oracle:make_node", oracle_params(cfg))]
     _backend_specs(cfg, specs)
-    return PipelinePlan(specs, final_topic="experience_map/pose", entry_stages=["oracle"],
-                        consumed_source_topics=["groundtruth", "odom"])
+    return _backend_plan(specs, ["oracle"], ["groundtruth", "odom"])
 
 
 RATSLAM_BRANCH_TOPICS = ("visual_template", "pose_cells/action", "experience_map/pose", "experience_map/map")

@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 
 from ..algorithms.projector import N_BITS, BinaryProjector, ProjectorConfig, TorchProjection
+from ..algorithms.weights import resolve_device
 from ..runtime.messages import Message
 from ..runtime.node import Node, Output, StageInputError
 from .topics import BIN_FEATURES, VISUAL_FEATURES
@@ -39,11 +40,7 @@ class ProjectorNode(Node):
         # hosted alone, e.g. by a custom plan)
         self.torch = None
         if self.config.device != "cpu":
-            import torch
-
-            dev = self.config.device
-            if dev == "auto":
-                dev = "cuda" if torch.cuda.is_available() else "cpu"
+            dev = resolve_device(self.config.device)
             self.torch = TorchProjection(self.projector, dev) if dev != "cpu" else None
 
     def process(self, topic: str, msg: Message) -> Output:
@@ -54,8 +51,8 @@ class ProjectorNode(Node):
         feats = []
         for m in msgs:
             f = np.asarray(m["features"])
-            if f.ndim != 1 or f.shape[0] != self.projector.input_dim:
-                raise StageInputError(f"features of shape {f.shape}, expected ({self.projector.input_dim},)")
+            if f.ndim != 1 or f.shape[0] != self.config.input_dim:
+                raise StageInputError(f"features of shape {f.shape}, expected ({self.config.input_dim},)")
             if not np.all(np.isfinite(f)):
                 raise StageInputError(f"features of frame {m.frame} contain NaN or infinite values")
             feats.append(f)

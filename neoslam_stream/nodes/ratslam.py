@@ -19,24 +19,24 @@ from typing import Any
 
 import numpy as np
 
+from ..algorithms.backend import Action, CameraOdometry, PoseCellStage, PoseCellStageConfig, integrate
 from ..algorithms.errors import InvalidInput
+from ..algorithms.frontend import LocalViewFrontEnd
 from ..algorithms.ratslam.experience_map import ExperienceMap, ExperienceMapConfig
-from ..algorithms.ratslam.local_view import LocalViewCells, LocalViewConfig
-from ..algorithms.ratslam.odometry_bias import YawBiasEstimator
-from ..algorithms.ratslam.odometry_gate import OdometryGate
-from ..algorithms.ratslam.pose_cells import PoseCellConfig, PoseCellNetwork
-from ..algorithms.ratslam.visual_odometry import VisualOdometry, VisualOdometryConfig
+from ..algorithms.ratslam.local_view import LocalViewConfig
+from ..algorithms.ratslam.visual_odometry import VisualOdometryConfig
 from ..runtime.messages import Message, decode, encode
 from ..runtime.node import Node, Output, StageInputError
-from .camera import decode_grey, decode_rgb
+from .camera import camera_pixels
 from .topics import EXPERIENCE_MAP, EXPERIENCE_POSE, IMAGE, ODOM, POSE_CELL_ACTION, VISUAL_TEMPLATE
 
 
 class PoseCellsNode(Node):
-    """Pose cells in a node: ``visual_template`` + ``odom`` -> one ``pose_cells/action`` per odometry.
+    """The back end's pose-cell stage in a node: ``visual_template`` + ``odom`` -> one
+    ``pose_cells/action`` per odometry, in frame order (see the module docstring).
 
     ``max_odom_lag``: how many odometry (or template) messages may wait for their partner before
-    the oldest is processed without it; other parameters are :class:`PoseCellConfig`'s.
+    the oldest is processed without it; the other parameters are :class:`PoseCellStageConfig`'s.
     """
 
     inputs = (VISUAL_TEMPLATE, ODOM)
@@ -44,39 +44,24 @@ class PoseCellsNode(Node):
 
     def __init__(self, max_odom_lag: int = 64, **params: Any) -> None:
         super().__init__()
-        self.pc = PoseCellNetwork(PoseCellConfig(**params))
-        self.gate = OdometryGate(self.pc.cfg.odometry_gate)
-        self.bias = YawBiasEstimator(self.pc.cfg.odometry_bias)
+        self.stage = PoseCellStage(PoseCellStageConfig(**params))
         self.max_odom_lag = max_odom_lag
         self.pending: OrderedDict[int, Message] = OrderedDict()  # odometry by frame
         self.templates_waiting: OrderedDict[int, Message] = OrderedDict()
         self.last_template_frame = -1
         self.max_odom_frame = -1
         self.last_odom_frame = -1
-        self.actions = {0: 0, 1: 0, 2: 0, 3: 0}
-        self.prev_odom_stamp: float | None = None
 
     def _odo(self, msg: Message, via: Message | None = None) -> Output:
-        vtrans, vrot = float(msg["vtrans"]), float(msg["vrot"])
-        if msg.data.get("dt") is not None:
-            dt = float(msg["dt"])
-        else:  # OpenRatSLAM's rule: the time since the previous odometry (the first one moves nothing)
-            dt = 0.0 if self.prev_odom_stamp is None else msg.stamp - self.prev_odom_stamp
-        self.prev_odom_stamp = msg.stamp
+        dt = msg.data.get("dt")
         self.last_odom_frame = max(self.last_odom_frame, msg.frame)
-        if not (math.isfinite(dt) and dt >= 0):
-            raise StageInputError(f"odometry dt {dt} is not a finite non-negative number")
-        # with odometry_bias on, everything downstream (pose cells, gate, the experience map via the
-        # action message) integrates the yaw rate less the bias estimated so far
-        vrot = self.bias.correct(vrot, dt)
-        self.pc.on_odo(vtrans, vrot, dt)
-        if self.gate.enabled:
-            self.gate.on_odo(vtrans, vrot, dt)
-        action, src, dst, rr = self.pc.get_action()
-        self.bias.on_action(action, dst, rr)
-        self.actions[action] += 1
-        data = {"action": action, "src_id": src, "dst_id": dst, "relative_rad": rr,
-                "vtrans": vtrans, "vrot": vrot, "dt": dt}
+        try:
+            a = self.stage.on_odometry(float(msg["vtrans"]), float(msg["vrot"]),
+                                       None if dt is None else float(dt), msg.stamp)
+        except InvalidInput as exc:
+            raise StageInputError(str(exc)) from None
+        data = {"action": a.action, "src_id": a.src_id, "dst_id": a.dst_id, "relative_rad": a.relative_rad,
+                "vtrans": a.vtrans, "vrot": a.vrot, "dt": a.dt}
         base = via if via is not None else msg
         out = base.derive(POSE_CELL_ACTION, data)
         out.frame, out.stamp = msg.frame, msg.stamp
@@ -86,12 +71,7 @@ class PoseCellsNode(Node):
         out: Output = []
         while self.pending and next(iter(self.pending)) < msg.frame:
             out += self._odo(self.pending.pop(next(iter(self.pending))))
-        vt, rel = int(msg["id"]), float(msg.data.get("relative_rad", 0.0))
-        # the bias sees every recognition (samples_from: templates), the gate's refusals too: a
-        # look-alike still faces the way the place was seen, and the gate needs the estimate
-        self.bias.on_template(vt, rel)
-        if not self.gate.enabled or self.gate.check(vt):
-            self.pc.on_view_template(vt, rel)
+        self.stage.on_template(int(msg["id"]), float(msg.data.get("relative_rad", 0.0)))
         self.last_template_frame = max(self.last_template_frame, msg.frame)
         odo = self.pending.pop(msg.frame, None)
         if odo is not None:
@@ -146,47 +126,30 @@ class PoseCellsNode(Node):
         return self._drain(final=True)
 
     def info(self) -> dict[str, Any]:
-        return {"templates": len(self.pc.templates), "experiences": len(self.pc.experiences),
-                "actions": {str(k): v for k, v in self.actions.items()}, "pending_odom": len(self.pending),
-                "gate_refused": self.gate.refused,
-                **({"yaw_bias_rad_s": round(self.bias.bias, 6), "yaw_bias_samples": self.bias.samples,
-                    "yaw_bias_outliers": self.bias.outliers} if self.bias.enabled else {}),
-                "best_pose_cells": [round(v, 3) for v in self.pc.best]}
+        return {**self.stage.info(), "pending_odom": len(self.pending)}
 
     def state_dict(self) -> dict[str, Any]:
-        return {"pc": self.pc.state_dict(), "gate": self.gate.state_dict(), "bias": self.bias.state_dict(),
-                "last_template_frame": self.last_template_frame,
+        return {**self.stage.state_dict(), "last_template_frame": self.last_template_frame,
                 "max_odom_frame": self.max_odom_frame, "last_odom_frame": self.last_odom_frame,
-                "actions": {str(k): v for k, v in self.actions.items()},
-                "prev_odom_stamp": -1.0 if self.prev_odom_stamp is None else self.prev_odom_stamp,
                 "pending": [np.frombuffer(encode(m), dtype=np.uint8) for m in self.pending.values()],
                 "templates_waiting": [np.frombuffer(encode(m), dtype=np.uint8)
                                       for m in self.templates_waiting.values()]}
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
-        self.pc.load_state_dict(st["pc"])
-        if "gate" in st:
-            self.gate.load_state_dict(st["gate"])
-        if "bias" in st:
-            self.bias.load_state_dict(st["bias"])
+        self.stage.load_state_dict(st)
         self.last_template_frame = int(st["last_template_frame"])
         self.max_odom_frame = int(st["max_odom_frame"])
         self.last_odom_frame = int(st.get("last_odom_frame", -1))
-        self.actions = {int(k): int(v) for k, v in st.get("actions", {}).items()} or self.actions
-        stamp = float(st.get("prev_odom_stamp", -1.0))
-        self.prev_odom_stamp = None if stamp < 0 else stamp
         self.pending, self.templates_waiting = OrderedDict(), OrderedDict()
         for key, store in (("pending", self.pending), ("templates_waiting", self.templates_waiting)):
             for raw in st[key]:
                 m = decode(np.asarray(raw, dtype=np.uint8).tobytes())
                 store[m.frame] = m
 
-
     def new_session(self) -> None:
         self.pending, self.templates_waiting = OrderedDict(), OrderedDict()
         self.last_template_frame = self.max_odom_frame = self.last_odom_frame = -1
-        self.prev_odom_stamp = None
-        self.bias.new_session()
+        self.stage.new_session()
 
 
 class ExperienceMapNode(Node):
@@ -217,22 +180,16 @@ class ExperienceMapNode(Node):
             return []
         # the topic's schema guarantees finite vtrans, vrot and dt (messages from the bus are
         # validated on decoding; those from a node in the same process are ours)
-        self.em.on_odo(float(d["vtrans"]), float(d["vrot"]), float(d["dt"]))
-        action = int(d["action"])
-        if action:
-            try:
-                self.em.on_action(action, int(d["src_id"]), int(d["dst_id"]), float(d.get("relative_rad", 0.0)),
-                                  msg.stamp)
-            except InvalidInput as exc:
-                raise StageInputError(f"inconsistent action: {exc}") from None
-        x, y, th = self.em.robot_pose()
+        action = Action(int(d["action"]), int(d["src_id"]), int(d["dst_id"]), float(d.get("relative_rad", 0.0)),
+                        float(d["vtrans"]), float(d["vrot"]), float(d["dt"]))
+        try:
+            p = integrate(self.em, action, msg.stamp)
+        except InvalidInput as exc:
+            raise StageInputError(f"inconsistent action: {exc}") from None
         self.last_frame, self.last_stamp = msg.frame, msg.stamp
-        pose = np.array([x, y, th], dtype=np.float64)
-        exp_id, *local = self.em.local_pose()
         # the pose relative to its experience as well, so that the recorder can re-express the
         # whole trajectory on the final, relaxed map (trajectory_map.tum)
-        return [(EXPERIENCE_POSE, msg.derive(EXPERIENCE_POSE, {"pose": pose, "exp_id": exp_id,
-                                                               "local": np.array(local, dtype=np.float64)}))]
+        return [(EXPERIENCE_POSE, msg.derive(EXPERIENCE_POSE, {"pose": p.pose, "exp_id": p.exp_id, "local": p.local}))]
 
     def flush(self) -> Output:
         ex = self.em.export()
@@ -261,15 +218,6 @@ class ExperienceMapNode(Node):
             self.last_frame, self.last_stamp = int(st["trajectory"][-1][0]), float(st["trajectory"][-1][1])
 
 
-def camera_pixels(msg: Message) -> np.ndarray:
-    """The frame as OpenRatSLAM reads it: grey frames as HxW, colour frames as HxWx3 (the RatSLAM
-    stages sum the channels as the C++ does, rather than using luma weights)."""
-    raw = msg.data.get("image")
-    if raw is not None and np.asarray(raw).ndim == 2:
-        return decode_grey(msg)
-    return decode_rgb(msg)
-
-
 class LocalViewNode(Node):
     """RatSLAM's local-view cells in a node: ``image`` -> ``visual_template`` (id, relative_rad,
     is_loop_closure, best_score = the match error). Parameters: :class:`LocalViewConfig`'s."""
@@ -279,35 +227,26 @@ class LocalViewNode(Node):
 
     def __init__(self, **params: Any) -> None:
         super().__init__()
-        self.lv = LocalViewCells(LocalViewConfig(**params))
-        self.prev = -1
+        self.front = LocalViewFrontEnd(LocalViewConfig(**params))
 
     def setup(self) -> None:
-        self.lv.warm_up()
+        self.front.warm_up()
 
     def process(self, topic: str, msg: Message) -> Output:
-        grey = camera_pixels(msg)
-        n_before = len(self.lv.templates)
         try:
-            vt, rad = self.lv.on_image(grey)
+            data = self.front.template(camera_pixels(msg.data))
         except InvalidInput as exc:
             raise StageInputError(str(exc)) from None
-        # a loop closure: an existing template other than the previous one was recognised
-        loop = len(self.lv.templates) == n_before and vt != self.prev
-        self.prev = vt
-        data = {"id": vt, "relative_rad": rad, "is_loop_closure": bool(loop), "best_interval": -1,
-                "best_score": float(self.lv.last_error)}
         return [(VISUAL_TEMPLATE, msg.derive(VISUAL_TEMPLATE, data))]
 
     def info(self) -> dict[str, Any]:
-        return {"templates": len(self.lv.templates)}
+        return {"templates": len(self.front.cells.templates)}
 
     def state_dict(self) -> dict[str, Any]:
-        return {"lv": self.lv.state_dict(), "prev": self.prev}
+        return self.front.state_dict()
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
-        self.lv.load_state_dict(st["lv"])
-        self.prev = int(st["prev"])
+        self.front.load_state_dict(st)
 
 
 class VisualOdometryNode(Node):
@@ -319,20 +258,13 @@ class VisualOdometryNode(Node):
 
     def __init__(self, **params: Any) -> None:
         super().__init__()
-        self.vo = VisualOdometry(VisualOdometryConfig(**params))
-        self.prev_stamp: float | None = None
+        self.vo = CameraOdometry(VisualOdometryConfig(**params))
 
     def process(self, topic: str, msg: Message) -> Output:
-        img = camera_pixels(msg)
-        dt = 1.0 / self.vo.cfg.camera_hz if self.prev_stamp is None else msg.stamp - self.prev_stamp
-        if dt < 0:
-            raise StageInputError(f"image stamp {msg.stamp} is earlier than the previous one ({self.prev_stamp})")
         try:
-            res = self.vo.on_image(img, dt)
+            vtrans, vrot, dt = self.vo.on_frame(camera_pixels(msg.data), msg.stamp)
         except InvalidInput as exc:
             raise StageInputError(str(exc)) from None
-        self.prev_stamp = msg.stamp
-        vtrans, vrot = res if res is not None else (0.0, 0.0)
         return [(ODOM, msg.derive(ODOM, {"vtrans": vtrans, "vrot": vrot, "dt": dt}))]
 
 

@@ -1,41 +1,17 @@
 """The recorder node: writes a run's outputs from the topics, so no algorithm node writes files.
 
-It subscribes to ``visual_template`` (templates.csv: frame -> template id, loop closures; and
-closures.csv, one row per loop closure), ``experience_map/pose`` (trajectory.tum: the
-experience-map pose per frame), ``experience_map/map`` (map.json: nodes and links, published once
-at the end of the run) and ``groundtruth`` (the true distance of each closure), and with
-``mcap`` the same outputs as ROS 2 messages in ``outputs.mcap`` (docs/ros2.md). It is an
-observer: hosted in the experience map's worker, it does not keep those topics off the bus. Its
-rows are its state, so checkpoints, ``--resume`` and crash restarts give the same files as an
-uninterrupted run.
+From ``visual_template``, ``experience_map/pose``, ``experience_map/map`` and ``groundtruth`` it
+writes templates.csv, closures.csv (:data:`CLOSURES_HEADER`), trajectory.tum, map.json,
+trajectory_map.tum (every pose re-expressed on the final map: :func:`poses_on_map`) and, with
+``mcap``, ``outputs.mcap`` (docs/ros2.md). An observer in the experience map's worker; its rows
+are its state, so checkpoints, ``--resume`` and crash restarts give an uninterrupted run's files.
 
-Writing, so that a crash or a full disk loses as little as possible and never tears a file:
-
-* ``templates.csv`` and ``trajectory.tum`` grow row by row: each row is appended (and handed to the
-  operating system) when it arrives, so a killed process loses none of the rows it got. The bytes
-  are those the whole file would have been written with at the end.
-* A journal next to them (``.recorder.journal``: the run id, then the kind and frame number of
-  every row appended, written just before the row) lets a worker restarted after a crash tell its
-  own rows from another run's files: it keeps the rows written before the crash (cutting a row
-  torn by the crash), adds those of its restored state that had not reached the files, and skips
-  rows of frames already written (an upstream stage replaying them), so no row is lost or doubled.
-  A new run, or the in-process API, starts the files afresh.
-* ``closures.csv`` (frame, stamp, template id, matched frame, true distance, score, runner-up's
-  score, margin; see :data:`CLOSURES_HEADER`) grows the same way. The matched frame is the frame
-  that opened the matched interval (D reports its intervals) or, for a front end without intervals,
-  the frame that created the matched template. A closure row waits for the ground truth of its
-  frame (which the source publishes before the image reaches the front end); it is written with an
-  empty distance once the ground-truth stream has passed its frame without it, or after
-  ``GT_WAIT_ROWS`` closures when no ground truth came at all (a source without it), or at the end.
-* ``map.json`` is written at the end to a temporary file, fsynced and renamed over the old one,
-  and so is ``trajectory_map.tum``: every frame's pose re-expressed on that final map (its offset
-  from its experience, as the experience map sent it, applied to where relaxation left the
-  experience: :func:`poses_on_map`), i.e. the trajectory smoothed by every loop closure of the run,
-  later ones included. It holds the frames whose pose the recorder holds (all of them, unless a
-  crash restarted it without a checkpoint).
-* An ``OSError`` (disk full) is logged once per file with the path (``disk full writing
-  RUN/map.json: ...``), counted (``counters["write_errors"]``); the rows not written wait and are
-  tried again at most every ``RETRY_S`` seconds and at the end. What was written stays intact.
+Why it writes as it does (docs/reliability.md, docs/evaluation.md): row files are appended row by
+row, each noted first in a journal (:data:`JOURNAL`), so a killed worker loses no row and its
+restart neither loses nor doubles one; map.json and trajectory_map.tum are replaced atomically at
+the end. A closure row waits for its frame's ground truth (at most ``GT_WAIT_ROWS`` closures). An
+``OSError`` (disk full) is logged once per file and counted; unwritten rows are retried at most
+every ``RETRY_S`` seconds and at the end, and what was written stays intact.
 """
 
 from __future__ import annotations

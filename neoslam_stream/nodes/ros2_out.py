@@ -1,44 +1,17 @@
 """What a run computes, as standard ROS 2 messages: published live over zenoh, and written to MCAP.
 
 :class:`Ros2Messages` turns the recorder's topics (``visual_template``, ``experience_map/pose``,
-``experience_map/map``) into ROS 2 messages; it knows no algorithm, only those messages' fields.
-Topics (``prefix`` ``/neoslam`` by default), all in ``frame_id`` (``map``):
+``experience_map/map``) into ROS 2 messages under ``prefix`` (``/neoslam``), in ``frame_id``:
+``odom``, ``pose``, ``path``, ``map_markers``, ``template_id``, ``loop_closure`` (types and
+meanings: docs/ros2.md). It knows no algorithm, only those messages' fields. Until the run's end
+the markers are drawn from the poses; the experience map's final, relaxed map then replaces them.
 
-========================  ====================================  =====================================
-topic                     type                                  what
-========================  ====================================  =====================================
-``/neoslam/odom``         nav_msgs/msg/Odometry                 the experience-map pose per frame
-``/neoslam/pose``         geometry_msgs/msg/PoseStamped         the same pose
-``/neoslam/path``         nav_msgs/msg/Path                     the poses so far (``path_max_poses``)
-``/neoslam/map_markers``  visualization_msgs/msg/MarkerArray    experiences (spheres), links (lines),
-                                                                loop closures (red lines)
-``/neoslam/template_id``  std_msgs/msg/Int32                    the frame's visual template id
-``/neoslam/loop_closure`` std_msgs/msg/String                   JSON ``{frame, stamp, template_id,
-                                                                exp_id}`` when a template is
-                                                                recognised (a loop closure)
-========================  ====================================  =====================================
-
-During a run the map is drawn from the poses: an experience sits where the robot was when it
-first reached it, a link joins two experiences the robot went between, and a link back to an
-older experience is a loop closure. The map relaxation moves experiences afterwards; the map the
-experience map publishes at the end of the run (with the relaxed positions) replaces the drawn
-one in the last ``map_markers``.
-
-CDR comes from rosbags' serialiser with the message definitions of ``distro`` (Humble's
-visualization_msgs/Marker has fewer fields than Jazzy's, so a Humble subscriber needs
-``distro: humble``). Two key formats (``format``):
-
-* ``bridge``: as zenoh-bridge-ros2dds publishes a ROS 2 topic: the topic name without its leading
-  slash (``neoslam/odom``), the CDR sample as payload, no attachment.
-* ``rmw``: as a node running rmw_zenoh publishes: ``<domain_id>/<topic>/<DDS type>/<type hash>``
-  with an attachment (sequence number, timestamp, GID; :mod:`neoslam_stream.sources.rmw_zenoh`).
-  The hash is the REP-2011 RIHS01 hash rosbags computes from the type description
-  (``TypeHashNotSupported`` for Humble). The node also declares rmw_zenoh's liveliness tokens for
-  itself and its publishers, so that ``ros2 topic list`` and RViz's topic menus can see them.
-
-:class:`Ros2OutNode` hosts this in a run (``ros2_out.format``): an observer next to the
-experience map, publishing on its worker's zenoh session. :func:`mcap_bytes` writes the same
-messages as an MCAP file with ros2msg schemas (the recorder's ``outputs.mcap``).
+CDR comes from rosbags' serialiser with the message definitions of ``distro``. Key formats:
+``bridge`` (as zenoh-bridge-ros2dds: the topic without its leading slash, no attachment) and
+``rmw`` (as an rmw_zenoh node: domain, topic, DDS type and RIHS01 type hash, with an attachment
+and liveliness tokens, so ROS 2 tools can see the publishers; :mod:`neoslam_stream.sources.rmw_zenoh`).
+:class:`Ros2OutNode` publishes them in a run, an observer next to the experience map;
+:func:`mcap_bytes` writes the same messages as the recorder's ``outputs.mcap``.
 """
 
 from __future__ import annotations

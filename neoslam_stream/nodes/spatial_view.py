@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from ..algorithms.errors import InvalidInput
+from ..algorithms.frontend import TEMPLATE_KEYS
 from ..algorithms.spatial_view import SpatialViewCells, SpatialViewConfig
 from ..runtime.messages import Message
 from ..runtime.node import Node, Output, StageInputError
@@ -34,9 +35,7 @@ class SpatialViewNode(Node):
         self.loops += res["is_loop_closure"]
         # best_score as the algorithm gave it (an overlap count; a float when union_normalised):
         # templates.csv writes it unchanged
-        data = {k: res[k] for k in ("id", "is_loop_closure", "best_interval", "relative_rad", "best_score",
-                                    "second_interval", "second_score", "interval")}
-        return [(VISUAL_TEMPLATE, msg.derive(VISUAL_TEMPLATE, data))]
+        return [(VISUAL_TEMPLATE, msg.derive(VISUAL_TEMPLATE, {k: res[k] for k in TEMPLATE_KEYS}))]
 
     def info(self) -> dict[str, Any]:
         return {"intervals": self.cells.n_intervals, "templates": self.cells.n_templates,

@@ -1,16 +1,18 @@
 """The typed topics of the algorithms' nodes (names after the paper where it names them).
 
-Each declaration registers its schema with the codec (``runtime.messages.register_schema``), so
-any process that imports a node validates these messages on decoding; the codec itself knows only
-the runtime's types (``image``, ``odom``, ``groundtruth``, ``stats``, ``control``).
+A declaration registers nothing by itself: a node's declared topics are registered when the node is
+built, and each plan lists :data:`ALGORITHM_TOPICS`, which every process of a run (workers, source,
+monitor, supervisor) registers at its start; a process that decodes them outside a run (the viewer)
+registers them itself. The codec knows only the runtime's own types (``image``, ``odom``,
+``groundtruth``, ``stats``, ``control``) and refuses a type nobody registered.
 """
 
 from __future__ import annotations
 
 from ..runtime.messages import CONTROL, GROUNDTRUTH, IMAGE, ODOM, Field, Topic
 
-__all__ = ["BIN_FEATURES", "CONTROL", "EXPERIENCE_MAP", "EXPERIENCE_POSE", "GROUNDTRUTH", "IMAGE",
-           "ODOM", "POSE_CELL_ACTION", "SDR", "VISUAL_FEATURES", "VISUAL_TEMPLATE"]
+__all__ = ["ALGORITHM_TOPICS", "BIN_FEATURES", "CONTROL", "EXPERIENCE_MAP", "EXPERIENCE_POSE", "GROUNDTRUTH",
+           "IMAGE", "ODOM", "POSE_CELL_ACTION", "SDR", "VISUAL_FEATURES", "VISUAL_TEMPLATE"]
 
 _IDX = ("uint16", "uint32", "int32", "int64", "uint64")
 
@@ -63,3 +65,7 @@ EXPERIENCE_MAP = Topic("experience_map/map", {
     "links": Field("array", ("int64", "int32"), (2,), optional=True),
     "export": Field("map", optional=True),
 })
+
+#: every topic the algorithms' nodes publish, with its schema: what a plan registers in each process
+ALGORITHM_TOPICS = (VISUAL_FEATURES, BIN_FEATURES, SDR, VISUAL_TEMPLATE, POSE_CELL_ACTION, EXPERIENCE_POSE,
+                    EXPERIENCE_MAP)

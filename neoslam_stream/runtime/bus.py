@@ -2,21 +2,14 @@
 
 Sessions are peers with multicast and gossip scouting off, listening on loopback only unless the
 user configures other endpoints (zenoh's own default would listen on every interface). The
-processes of one run form a full mesh: each listens on its own loopback port and connects to the
-ports of the processes started before it, so frames go directly from producer to consumer.
+processes of one run form a full mesh, so frames go directly from producer to consumer.
 
-Two delivery modes (DESIGN.md "Queues and loss"):
-
-* **real-time**: each input is a bounded ring; a slow stage drops the *oldest* waiting message and
-  never blocks its upstream; publishers use congestion control DROP.
-* **lossless**: each input is a bounded FIFO whose producer blocks when full, publishers use
-  congestion control BLOCK, so back-pressure reaches the source and nothing is lost.
-
-The queues are fed by zenoh callbacks instead of zenoh's ``RingChannel``/``FifoChannel`` pollers so
-that one worker thread can wait on several inputs at once without polling (a wake-up costs nothing
-while idle, which matters with ~8 processes on 2 cores) and so that every eviction is counted with
-the frame number it removed. Semantics are those of ``RingChannel(capacity)`` (newest ``capacity``
-kept) and ``FifoChannel(capacity)`` (producer blocks); tests check both through real zenoh.
+Two delivery modes (DESIGN.md "Queues and loss"): **real-time**, a bounded ring per input that
+drops the *oldest* waiting message and never blocks its upstream (congestion control DROP); and
+**lossless**, a bounded FIFO whose producer blocks when full (congestion control BLOCK), so
+back-pressure reaches the source. The queues are fed by zenoh callbacks, with the semantics of
+``RingChannel``/``FifoChannel``, so that one worker thread waits on all its inputs without polling
+and every eviction is counted with the frame it removed (docs/runtime.md, "The two modes").
 """
 
 from __future__ import annotations

@@ -2,7 +2,8 @@
 
 One model per component; ``RunConfig`` composes the runtime's. Unknown keys are errors, and a bad
 value gives one clear message naming the field (``ConfigError``). The algorithms' sections are
-their own models (``neoslam_stream.algorithms``); ``neoslam_stream.config`` composes everything.
+their own models; ``neoslam_stream.config`` composes everything (and checks the source kind
+against the sources' registry, which the runtime does not know).
 """
 
 from __future__ import annotations
@@ -22,8 +23,9 @@ class Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
 
-#: input queue capacity per topic unless configured (see BusConfig.capacity)
-DEFAULT_CAPACITY = {"image": 2, "odom": 256, "groundtruth": 256, "pose_cells/action": 256}
+#: input queue capacity of the runtime's own topics unless configured (see BusConfig.capacity); a
+#: plan gives those of its nodes' topics (PipelinePlan.capacity)
+DEFAULT_CAPACITY = {"image": 2, "odom": 256, "groundtruth": 256}
 
 
 class BusConfig(Strict):
@@ -37,21 +39,18 @@ class BusConfig(Strict):
     #: endpoints on which the supervisor's router alone also listens: the rendezvous of a run split
     #: over several hosts (docs/runtime.md "Several hosts"); every other process stays on `host`
     router_listen: list[str] = Field(default_factory=list)
-    #: zenoh shared memory for large payloads. Off by default: at camera rates its gain per
-    #: message is small, but its first use in each process stalls the pipeline, which lost frames
-    #: at the start of real-time runs (measurements: docs/performance.md)
+    #: zenoh shared memory for large payloads. Off: at camera rates it gains little per message and
+    #: its first use in each process stalls the pipeline (docs/performance.md)
     shm: bool = False
     #: a zenoh json5 config file for settings neoslam does not make itself (TLS certificates,
     #: access control; see docs/reliability.md); neoslam's endpoints, mode and scouting-off apply on top
     zenoh_config: str | None = None
-    #: zenoh's transmit queue per link for data messages, in batches of 64 kB (zenoh's default: 2).
-    #: A's 260 kB feature messages need 5 batches: with 16, two of three 60 FPS runs had no
-    #: transport drop (docs/performance.md); each link then holds up to 1 MB
+    #: zenoh's transmit queue per link for data messages, in batches of 64 kB (None: zenoh's
+    #: default); deeper for large messages at high rates (docs/performance.md)
     tx_queue: int | None = Field(None, ge=1, le=64)
     #: input queue capacity per topic (real-time: ring, drop-oldest; lossless: FIFO, blocks).
-    #: image 2: the newest frame plus one, so that a stage stalled for up to two frame periods
-    #: (many processes share few cores) loses nothing; with 1, frames were lost in long runs
-    #: (docs/performance.md). odom is tiny and needed for path integration, so deep.
+    #: image: the newest frame plus one, so a stage stalled for two frame periods loses nothing;
+    #: odom and groundtruth: tiny, and path integration needs every one (docs/runtime.md)
     capacity: dict[str, int] = Field(default_factory=lambda: dict(DEFAULT_CAPACITY))
     default_capacity: int = Field(2, ge=1)
     #: lossless mode: the source runs at most this many frames ahead of the final topic
@@ -74,7 +73,7 @@ class BusConfig(Strict):
 
 
 class SourceConfig(Strict):
-    """Where frames come from. ``kind`` names a registered source (see ``SOURCES``)."""
+    """Where frames come from. ``kind`` names a source (a registered kind, or ``module:Class``)."""
 
     kind: str = "synthetic"
     params: dict[str, Any] = Field(default_factory=dict)
@@ -84,16 +83,6 @@ class SourceConfig(Strict):
     rate_multiplier: float = Field(1.0, gt=0)
     max_frames: int | None = Field(None, ge=1)
     duration: float | None = Field(None, gt=0)
-
-    @field_validator("kind")
-    @classmethod
-    def _known_kind(cls, v: str) -> str:
-        from ..sources import SOURCES  # the registry only: no source module is imported
-
-        if ":" not in v and v not in SOURCES:
-            raise ValueError(f"unknown source kind {v!r}; known: {', '.join(sorted(SOURCES))} "
-                             f"(or 'package.module:Class' for your own)")
-        return v
 
 
 class EmulatedConfig(Strict):

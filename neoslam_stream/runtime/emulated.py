@@ -1,13 +1,10 @@
 """Emulated stages and source: a known service time tau instead of an algorithm.
 
-They reproduce the paper's worked example (Part I) through the real runtime: four stages with
-tau = 50, 280, 20, 350 ms fed at 10 Hz. By the paper's eq. 2 the pipeline sustains
-1 / max(tau) = 2.86 Hz (bottleneck: stage 4, loss 1 - 2.86/10 = 71.4 %), the monolithic design
-1 / sum(tau) = 1.43 Hz (loss 85.7 %).
-
-Service time is slept by default: on a 2-core machine four busy-waiting stages would compete for
-the cores and measure the CPU scheduler instead of the architecture. ``busy=True`` spins instead,
-for CPU-bound emulation on machines with a core per stage.
+They reproduce the paper's worked example (Part I) through the real runtime: stages of given
+service times fed at a fixed rate, so that the measured rate and loss can be set against eq. 2
+(docs/runtime.md, "The paper's worked example"). Service time is slept by default (on few cores,
+busy-waiting stages would measure the CPU scheduler instead of the architecture); ``busy=True``
+spins, for machines with a core per stage.
 """
 
 from __future__ import annotations
@@ -17,9 +14,12 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from ..sources.base import Source, SourceFrame
-from .messages import Message
+from .messages import Field, Message, Topic
 from .node import Node, NodeSpec, Output
+from .source import SourceFrame
+
+#: what an emulated stage publishes (on ``emulated/<i>``): an optional payload of fixed size
+EMULATED = Topic("emulated", {"payload": Field("array", optional=True)})
 
 
 class EmulatedStage(Node):
@@ -44,7 +44,7 @@ class EmulatedStage(Node):
         elif self.tau > 0:
             time.sleep(self.tau)
         data = {} if self.payload is None else {"payload": self.payload}
-        return [(self.outputs[0], msg.derive("emulated", data))]
+        return [(self.outputs[0], msg.derive(EMULATED, data))]
 
     def info(self) -> dict:
         return {"emulated_tau_ms": self.tau * 1e3, "busy": self.busy}
@@ -54,8 +54,9 @@ def make_emulated_stage(**params: object) -> EmulatedStage:
     return EmulatedStage(**params)  # type: ignore[arg-type]
 
 
-class EmulatedSource(Source):
-    """Small random frames (seeded), ``frames`` of them or endless when ``frames`` is None."""
+class EmulatedSource:
+    """Small random frames (seeded), ``frames`` of them or endless when ``frames`` is None (a
+    :class:`~neoslam_stream.runtime.source.Source`)."""
 
     def __init__(self, frames: int | None = None, height: int = 32, width: int = 32, rate_hz: float = 10.0,
                  seed: int = 0, with_odom: bool = False) -> None:
@@ -76,6 +77,9 @@ class EmulatedSource(Source):
 
     def info(self) -> dict:
         return {"kind": "emulated", "frames": self.length, "shape": list(self.shape)}
+
+    def close(self) -> None:
+        pass
 
 
 def emulated_pipeline(taus_ms: list[float], busy: bool = False) -> list:

@@ -5,24 +5,22 @@ Every message on the bus is a msgpack map::
     {"v": SCHEMA_VERSION, "type": <str>, "frame": <int>, "stamp": <float>,
      "trace": [[stage, received, started, finished], ...], "data": {...}}
 
-``frame`` is the source's sequence number (the identity of one camera frame end to end), ``stamp``
-the source time in seconds, ``trace`` the per-stage timing (``time.time()`` seconds; ``received`` is
-when the worker took the message from its queue's producer side, ``started``/``finished`` bracket
-the service time tau_i). ``data`` holds the type's fields (see :data:`SCHEMAS`: the codec knows the runtime's own types;
-nodes register the types of their topics with :class:`Topic`).
+``frame`` is the source's sequence number (one camera frame end to end), ``stamp`` the source time
+in seconds, ``trace`` the per-stage times (``received`` when the worker took the message, ``started``
+/ ``finished`` bracket the service time tau_i). numpy arrays travel as ext type :data:`NDARRAY_EXT`
+(dtype, shape, raw little-endian bytes; decoded as read-only views, no copy); nothing is pickled.
 
-numpy arrays travel as msgpack ext type :data:`NDARRAY_EXT` holding a small header (dtype, shape)
-and the raw little-endian bytes; decoding uses ``np.frombuffer`` on the received buffer (no copy;
-the arrays are read-only). Only dtypes in :data:`ALLOWED_DTYPES` are accepted. Nothing is pickled.
-
-Decoding validates the envelope, size limits, dtypes, shapes and each type's required fields, and
-raises exactly one exception type, :class:`MessageError`, with the cause.
+Decoding validates the envelope, size limits, dtypes, shapes and the ``data`` fields of the type's
+registered schema, and raises one exception type, :class:`MessageError`, with the cause. The codec
+knows only the runtime's own types; every other type must be registered in the process that encodes
+or decodes it (:func:`register_topics`; a free-form type explicitly with :func:`register_unvalidated`).
 """
 
 from __future__ import annotations
 
 import math
 import struct
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -124,39 +122,49 @@ class Field:
     finite: bool = False  # for floats and float arrays: NaN/inf rejected
 
 
-#: data-field schema per message type, filled by :func:`register_schema`. The runtime registers
-#: only its own types here (camera frames, odometry and ground truth from the sources, stats,
-#: control, the emulated stages); the nodes declare the types of the algorithms' topics next to
-#: them (``neoslam_stream.nodes.topics``) and the worker registers them when it hosts a node.
-#: Types not registered carry a free-form ``data`` map.
-SCHEMAS: dict[str, dict[str, Field]] = {}
-
-
 class Topic(str):
     """A topic name that carries the schema of its messages' ``data`` map.
 
     It is a ``str`` (``Topic("sdr", {...}) == "sdr"``), so nodes declare ``inputs``/``outputs``
-    with it and the runtime uses it as a plain name; :func:`register_schema` is called for it on
-    creation, so that whoever imports a topic's declaration validates its messages.
+    with it and the runtime uses it as a plain name. Declaring a topic registers nothing: a process
+    registers the topics it handles (:func:`register_topics`; a node's declared topics are
+    registered when the node is built, a run's by every process at its start).
     """
 
     schema: dict[str, Field]
 
-    def __new__(cls, name: str, schema: dict[str, Field] | None = None) -> Topic:
+    def __new__(cls, name: str, schema: dict[str, Field]) -> Topic:
         obj = super().__new__(cls, name)
-        obj.schema = dict(schema or {})
-        if schema is not None:
-            register_schema(name, obj.schema)
+        obj.schema = dict(schema)
         return obj
 
+    def __reduce__(self) -> tuple[Any, ...]:  # crosses a ``spawn`` with its schema
+        return (Topic, (str(self), self.schema))
 
-def register_schema(mtype: str, schema: dict[str, Field]) -> None:
-    """Declare the ``data`` fields of message type ``mtype``. Registering the same schema again is
-    a no-op; a different one for a registered type is a programming error."""
-    old = SCHEMAS.get(mtype)
-    if old is not None and old != schema:
+
+#: Schema of a type registered as free-form: its ``data`` map is not checked.
+UNVALIDATED = None
+
+
+def register_schema(mtype: str, schema: dict[str, Field] | None) -> None:
+    """Declare the ``data`` fields of message type ``mtype`` (``None``: free-form, see
+    :func:`register_unvalidated`). Registering the same schema again is a no-op; a different one
+    for a registered type is a programming error (ValueError)."""
+    new = None if schema is None else dict(schema)
+    if mtype in SCHEMAS and SCHEMAS[mtype] != new:
         raise ValueError(f"message type {mtype!r} is already registered with other fields")
-    SCHEMAS[mtype] = dict(schema)
+    SCHEMAS[mtype] = new
+
+
+def register_unvalidated(mtype: str) -> None:
+    """Let messages of type ``mtype`` pass with any ``data`` map (the envelope is still checked)."""
+    register_schema(mtype, UNVALIDATED)
+
+
+def register_topics(topics: Iterable[Topic]) -> None:
+    """Register the schema of every topic declaration in ``topics``."""
+    for t in topics:
+        register_schema(str(t), t.schema)
 
 
 _POSE3 = Field("array", ("float64", "float32"), (1,), (3,), finite=True)
@@ -183,7 +191,12 @@ STATS = Topic("stats", {"stage": Field("str")})
 #: ``token``: the run's secret (see bus.ControlGate); ``target``: one process, or all when absent
 CONTROL = Topic("control", {"command": Field("str"), "token": Field("str", optional=True),
                             "target": Field("str", optional=True)})
-EMULATED = Topic("emulated", {"payload": Field("array", optional=True)})
+#: the types the codec knows without registration: the sources' and the runtime's own
+RUNTIME_TOPICS = (IMAGE, ODOM, GROUNDTRUTH, STATS, CONTROL)
+
+#: ``data`` schema per registered message type (None: registered as free-form); the runtime's own
+#: types from the start, every other one by :func:`register_schema` in the process that needs it
+SCHEMAS: dict[str, dict[str, Field] | None] = {str(t): dict(t.schema) for t in RUNTIME_TOPICS}
 
 _PY_KIND = {"int": (int,), "float": (int, float), "bool": (bool,), "str": (str,),
             "bytes": (bytes, bytearray, memoryview), "map": (dict,), "list": (list, tuple)}
@@ -216,9 +229,13 @@ def _check_field(mtype: str, name: str, spec: Field, value: Any) -> None:
 
 
 def validate_data(mtype: str, data: dict[str, Any]) -> None:
-    """Check ``data`` against the schema of ``mtype`` (types without a schema pass)."""
+    """Check ``data`` against the registered schema of ``mtype``; a type never registered in this
+    process is refused (MessageError), one registered as free-form passes."""
     base = mtype.split("/")[0] if mtype.startswith("stats") else mtype
-    schema = SCHEMAS.get(base)
+    if base not in SCHEMAS:
+        raise MessageError(f"message type {mtype!r} has no registered schema in this process (register "
+                           f"its Topic with register_topics, or a free-form type with register_unvalidated)")
+    schema = SCHEMAS[base]
     if schema is None:
         return
     for name, spec in schema.items():
@@ -238,7 +255,7 @@ TraceEntry = tuple[str, float, float, float]
 
 @dataclass
 class Message:
-    """One message on the bus. ``data`` fields per type are listed in :data:`SCHEMAS`."""
+    """One message on the bus. ``data`` fields per type: the registered :data:`SCHEMAS`."""
 
     type: str
     frame: int

@@ -1,33 +1,16 @@
 """The contract between the runtime and the algorithms: a node.
 
-A node turns messages into calls on one algorithm object (``neoslam_stream.algorithms``) and the
-results back into messages; the nodes live in ``neoslam_stream.nodes``. The runtime hosts nodes:
-one per process in the ``pipeline`` topology, several in sequence in one process in the
-``monolithic`` topology, all in the caller's process for the in-process API (``runtime.local``).
-It never looks inside them.
+A node turns typed topic messages into calls on one algorithm object and the results back into
+messages (the nodes live in ``neoslam_stream.nodes``). The runtime hosts nodes, one per process
+(``pipeline``) or several in sequence in one process (``monolithic``), and never looks inside
+them. Nodes are built where they run from a :class:`NodeSpec` (a dotted factory path and plain
+parameters: only plain data crosses a ``spawn``).
 
-Nodes are built inside the worker process from a :class:`NodeSpec` (a dotted factory path and
-plain parameters), because worker processes are started with ``spawn`` and only plain data crosses.
-
-Rules for nodes:
-
-* ``inputs``/``outputs`` name the topics, as :class:`~neoslam_stream.runtime.messages.Topic`
-  declarations carrying their schemas (``neoslam_stream.nodes.topics``).
-* ``process`` receives one decoded, validated :class:`~neoslam_stream.runtime.messages.Message` and returns
-  the messages to publish as ``(topic, message)`` pairs; use ``msg.derive(type, data)`` so frame,
-  stamp and trace carry over. The worker appends this stage's trace entry itself.
-* Bad input (wrong shape, NaN, corrupt image...) raises :class:`StageInputError` (or
-  :class:`~neoslam_stream.runtime.messages.MessageError`, or an algorithm's
-  ``neoslam_stream.algorithms.errors.InvalidInput``): the worker counts it with its cause, logs the
-  cause once, skips the message and carries on. Any other exception is a bug: the worker logs its
-  traceback and counts it apart (``internal_errors``), never as bad input (see
-  :func:`is_input_error`).
-* Frames removed on purpose (``frame_stride``) return ``[]`` and increment ``self.counters["strided"]``,
-  so the monitor does not count them as lost.
-* A node that publishes outside the run's topics (the ROS 2 output) defines
-  ``bind_session(session)``: its worker calls it with the run's zenoh session once connected.
-* ``info()`` returns small JSON-able facts for ``stats/<stage>`` and ``report.json`` (backbone that
-  ran, TM segment counts...). ``flush()`` is called once at shutdown.
+A node declares ``inputs``/``outputs`` as ``Topic`` declarations (``runtime.messages``), which
+are registered with the codec when it is built; ``process`` gets one decoded, validated message
+and returns ``(topic, message)`` pairs made with ``msg.derive``; bad input raises
+:class:`StageInputError` (counted and skipped: :func:`is_input_error`), any other exception is a
+bug. The rules in full: docs/runtime.md, "Writing a node".
 """
 
 from __future__ import annotations
@@ -37,7 +20,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-from .messages import Message, MessageError
+from .messages import Message, MessageError, Topic, register_topics
 
 Output = list[tuple[str, Message]]
 
@@ -79,6 +62,7 @@ class Node:
 
     def __init__(self) -> None:
         self.counters: dict[str, int] = {"strided": 0}
+        register_declared_topics(self)
 
     def setup(self) -> None:
         """Heavy initialisation (model weights, numba compilation); called once in the worker process."""
@@ -115,6 +99,12 @@ class Node:
         pass
 
 
+def register_declared_topics(node: Node) -> None:
+    """Register the schemas of the :class:`Topic` declarations among ``node``'s inputs and outputs
+    (plain names are the types a plan registers, such as the emulated stages')."""
+    register_topics(t for t in (*node.inputs, *node.outputs) if isinstance(t, Topic))
+
+
 def load_factory(path: str) -> Any:
     """The callable named by ``"package.module:callable"``."""
     module_name, _, attr = path.partition(":")
@@ -131,7 +121,7 @@ class NodeSpec:
     name: str
     factory: str
     params: dict[str, Any] = field(default_factory=dict)
-    #: torch / BLAS / numba threads for this worker (2 cores are shared by ~7 processes).
+    #: torch / BLAS / numba threads for this worker (the stages of a run share the cores)
     threads: int = 1
     #: node topic -> bus topic, to run two copies of a stage side by side (e.g. ``neoslam compare``)
     remap: dict[str, str] = field(default_factory=dict)
@@ -154,4 +144,5 @@ class NodeSpec:
             raise TypeError(f"{self.factory} returned {type(node).__name__}, not a Node")
         node.name = self.name
         node.observer = node.observer or self.observer
+        register_declared_topics(node)  # also those a node declares after Node.__init__
         return node

@@ -2,29 +2,14 @@
 
 ``neoslam run --stages A,B --run-id ID --connect tcp/HOST:7447`` on one machine and
 ``neoslam run --stages rest --run-id ID --connect tcp/HOST:7447`` on another make one run: the
-stages of both exchange their topics through a zenoh router that both supervisors reach.
-
-* **Links.** Inside a host nothing changes: its processes form a full mesh with its supervisor, a
-  zenoh router. Between hosts only the supervisors' routers are linked (``bus.connect``, and
-  ``bus.router_listen`` for the one that others connect to, or a separate ``neoslam router``);
-  the other processes do not connect to other hosts themselves: zenoh routes between the peers of
-  different routers, not between peers that only share a router (tested on zenoh 1.x: such peers
-  never receive each other's samples).
-* **The primary.** The host that runs the pipeline's last stage (the experience map, with the
-  recorder) also runs the source and the monitor: the camera and odometry come from the robot that
-  runs the back end, its run folder gets every output (trajectory, templates, ground truth,
-  odometry, map, report), and the frames go to the other host's stages through the router. Its
-  supervisor waits for the liveliness tokens of every worker of the run (those of other hosts come
-  through the router) before the source starts, ends the run as a single-host run does (lossless:
-  when every stage, wherever it runs, is idle and every published message arrived) and stops the
-  other hosts' workers with the same ``stop`` control messages, in the same order.
-* **The other hosts** start their workers, restart those that crash, and end when all their
-  workers have stopped (the primary stopped them), when the run's monitor has been gone for
-  ``PRIMARY_GONE_S`` (the primary host died), or on Ctrl-C. Their run folder gets ``part.json``.
-* **Selection.** ``stages`` names worker processes (stage names, ``pose_cells``...); the recorder
-  goes with the experience map. ``rest`` takes every worker no other host announced: each
-  supervisor declares the liveliness token ``neoslam/<run>/part/<w1,w2,...>``, and a ``rest``
-  supervisor waits for at least one such announcement, then a moment for others.
+stages of both exchange their topics through a zenoh router that both supervisors reach. Inside a
+host nothing changes; between hosts only the supervisors' routers are linked (zenoh routes between
+the peers of linked routers, not between peers that merely share a router). The host that runs the
+pipeline's last stage (the primary) also runs the source and the monitor and ends the run, stopping
+the other hosts' workers with the run's ``stop`` control messages; the other hosts end when their
+workers have stopped, or when the primary's monitor has been gone for ``PRIMARY_GONE_S``.
+``rest`` takes every worker no other host announced (liveliness tokens ``neoslam/<run>/part/...``).
+Details: docs/runtime.md, "One run, stages on several hosts".
 """
 
 from __future__ import annotations
@@ -76,7 +61,8 @@ class PartSupervisor(Supervisor):
     """The supervisor of one host's share of a run split over several hosts (module docstring)."""
 
     def __init__(self, cfg: Any, plan: PipelinePlan, run_dir: str | Path | None = None,
-                 resume: str | Path | None = None, map_path: str | Path | None = None) -> None:
+                 resume: str | Path | None = None, map_path: str | Path | None = None,
+                 source_factory: str | None = None) -> None:
         if cfg.run.topology != "pipeline":
             raise RunError("--stages needs the pipeline topology (one process per stage)")
         if not getattr(cfg.run, "run_id", None):
@@ -87,7 +73,7 @@ class PartSupervisor(Supervisor):
             raise RunError(f"--stages needs the run's control secret, the same on every host: set "
                            f"{CONTROL_TOKEN_ENV} (e.g. to the output of `openssl rand -hex 16`) in the "
                            f"environment of every host's `neoslam run`")
-        super().__init__(cfg, plan, run_dir, resume, map_path)
+        super().__init__(cfg, plan, run_dir, resume, map_path, source_factory)
         self.stages = list(cfg.run.stages)
         self.hosted = check_selection(self.groups, self.stages)
         self._part_token: Any = None
@@ -192,11 +178,13 @@ class PartSupervisor(Supervisor):
 
 
 def run_part(cfg: Any, plan: PipelinePlan, run_dir: str | Path | None = None,
-             resume: str | Path | None = None, map_path: str | Path | None = None) -> RunResult:
-    """Run this host's share of ``plan`` (``cfg.run.stages``), or all of it when none is selected."""
+             resume: str | Path | None = None, map_path: str | Path | None = None,
+             source_factory: str | None = None) -> RunResult:
+    """Run this host's share of ``plan`` (``cfg.run.stages``), or all of it when none is selected;
+    ``source_factory`` builds the run's source (on the host that runs it)."""
     if not getattr(cfg.run, "stages", None):
-        return run_plan(cfg, plan, run_dir, resume, map_path)
-    return PartSupervisor(cfg, plan, run_dir, resume, map_path).run()
+        return run_plan(cfg, plan, run_dir, resume, map_path, source_factory)
+    return PartSupervisor(cfg, plan, run_dir, resume, map_path, source_factory).run()
 
 
 def serve_router(listen: list[str], connect: list[str] | None = None, duration: float | None = None) -> None:

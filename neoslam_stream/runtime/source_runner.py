@@ -1,19 +1,15 @@
-"""The source process: reads a :class:`Source`, paces it and publishes its frames.
+"""The source process: reads a :class:`~neoslam_stream.runtime.source.Source`, paces it and
+publishes its frames.
 
 Each :class:`SourceFrame` becomes an ``image`` message (with a ``source`` trace entry stamped at
-publication), plus ``odom`` and ``groundtruth`` messages with the same frame number.
-
-Pacing:
-
-* ``fixed``: ``rate`` frames per second (a live camera).
-* ``recorded``: the source's own stamps, times ``rate_multiplier``.
-* ``asap`` (lossless only): as fast as the pipeline takes. Publishers BLOCK, and a credit window
-  keeps the source at most ``window`` frames ahead of the last frame seen on the run's final topic,
-  so queues and memory stay bounded whatever the pipeline's speed.
+publication), plus ``odom`` and ``groundtruth`` messages with the same frame number. Pacing:
+``fixed`` (``rate`` frames per second, a live camera), ``recorded`` (the source's own stamps,
+times ``rate_multiplier``) or ``asap`` (lossless only: publishers block, and a credit window keeps
+the source at most ``window`` frames ahead of the last frame seen on the run's final topic, so
+queues and memory stay bounded whatever the pipeline's speed).
 
 After its last frame the source keeps its session open until the supervisor tells it to stop
-(it does so once the pipeline has drained): zenoh loses samples still in flight when a publisher
-closes its session.
+(once the pipeline has drained): zenoh loses samples still in flight when a publisher closes.
 """
 
 from __future__ import annotations
@@ -32,11 +28,11 @@ from typing import Any
 
 import numpy as np
 
-from ..sources.base import Source
 from ..tum import write_tum
 from .bus import Bus, ControlGate, key_for, open_session, wait_for_peers, wait_for_subscribers
-from .messages import Message, MessageError, decode, encode
+from .messages import Message, MessageError, Topic, decode, encode, register_topics
 from .node import load_factory
+from .source import Source
 
 log = logging.getLogger("neoslam.source")
 
@@ -61,6 +57,8 @@ class SourceRunSpec:
     run: str
     run_dir: str
     lossless: bool
+    #: the topic whose arrival marks a frame as done (the plan's): the credit window counts on it
+    final_topic: str
     listen: list[str] = field(default_factory=list)
     connect: list[str] = field(default_factory=list)
     shm: bool = False
@@ -70,7 +68,6 @@ class SourceRunSpec:
     max_frames: int | None = None
     duration: float | None = None
     window: int = 8
-    final_topic: str = "experience_map/pose"
     stall_timeout: float = 60.0
     #: after the last frame, wait at most this long for the supervisor's stop
     linger_timeout: float = 600.0
@@ -88,6 +85,8 @@ class SourceRunSpec:
     settle_s: float = 1.0
     #: the run's control secret (bus.ControlGate): control messages without it are refused
     control_token: str = ""
+    #: the message types of the run with their schemas (the plan's): the final topic's among them
+    topics: list[Topic] = field(default_factory=list)
 
 
 class _Progress:
@@ -101,10 +100,16 @@ class _Progress:
         self.count = 0
         self.last_change = time.monotonic()
         self.cond = threading.Condition()
+        self.refusal_logged = False
 
     def on_sample(self, sample: Any) -> None:
         try:
             msg = decode(sample.payload.to_bytes())
+        except MessageError as exc:  # an unregistered type says so here, once
+            if not self.refusal_logged:
+                self.refusal_logged = True
+                log.warning("a message of the final topic was refused: %s", exc)
+            return
         except Exception:
             return
         with self.cond:
@@ -170,6 +175,7 @@ def run_source(spec: SourceRunSpec) -> None:
 
     signal.signal(signal.SIGTERM, _stop)
     signal.signal(signal.SIGINT, _stop)
+    register_topics(spec.topics)
     try:
         source = spec.source.build()
     except Exception as exc:  # a missing file, an unreadable bag, a bad parameter: say it plainly

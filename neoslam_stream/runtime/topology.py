@@ -2,23 +2,17 @@
 
 Topologies (DESIGN.md): ``pipeline`` runs one process per stage connected by zenoh pub/sub;
 ``monolithic`` runs every stage in one process, in sequence, and like the original blocking NeoSLAM
-discards frames that arrive while it is busy except the newest (a small drop-oldest image ring).
-Both host the very same nodes. The runtime knows no algorithm: the caller gives the
-:class:`PipelinePlan` (``neoslam_stream.nodes.pipelines`` builds the named ones).
+keeps only the newest frame that arrived while it was busy. Both host the very same nodes. The
+runtime knows no algorithm and no source: the caller gives the :class:`PipelinePlan` (plan.py: its
+nodes, final topic, message types and capacities) and the factory of the run's source.
 
-Every child is a zenoh peer that listens on its own loopback port and connects to all processes
-started before it (a full mesh, so frames go directly from producer to consumer). The supervisor
-(this process) is a zenoh router on its own port, so a tool attaching in client mode to that one
-endpoint (``neoslam monitor RUN_DIR``, tests injecting messages) reaches every process. It waits until every worker announced readiness, starts the
-source, restarts a crashed worker or monitor (bounded, reported), detects the end of the run
-(source done and the pipeline drained), stops everything in order and completes ``report.json``.
-
-Hardening (#13): every child dies with the supervisor (procs.follow_parent: it gets the
-supervisor's pid in its spawn arguments); control messages carry a per-run secret token, handed to
-the children in their specs and never sent alone over the bus, and every process refuses (and
-counts) control messages without it (bus.ControlGate); the supervisor follows the stats and the
-final topic itself, so the report's loss is measured over the whole run even when the monitor was
-killed and restarted, and it writes report.json atomically (a full disk keeps the previous one).
+Every child is a zenoh peer linked to all processes started before it (a full mesh); the supervisor
+is a zenoh router, so a tool attaching in client mode to its one endpoint reaches every process. It
+waits until every worker announced readiness, starts the source, restarts a crashed worker or
+monitor (bounded, reported), ends the run once the source is done and the pipeline drained, stops
+everything in order and completes ``report.json`` with the figures it measured itself (they survive
+a killed monitor). Children die with it; control messages carry a per-run secret (docs/reliability.md).
+Starting, restarting and stopping the processes: children.py.
 """
 
 from __future__ import annotations
@@ -30,21 +24,20 @@ import os
 import secrets
 import signal
 import time
-from collections.abc import Collection
-from dataclasses import dataclass, field
-from datetime import datetime
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-from ..sources import source_factory
 from .bus import ZENOH_CONFIG_ENV, ZENOH_TX_QUEUE_ENV, free_port, key_for, open_session
-from .checkpoint import cut_dir, latest_complete_cut, latest_stage_state
-from .messages import Message, encode
-from .monitor import FinalTracker, MonitorSpec, StatsCollector, build_report, write_report
-from .node import NodeSpec
+from .checkpoint import cut_dir, latest_complete_cut
+from .children import ChildProcesses
+from .collector import FinalTracker, StatsCollector
+from .messages import register_topics
+from .monitor import MonitorSpec
+from .plan import PipelinePlan, RunError, RunResult, group_workers, make_run_dir
 from .procs import monitor_entry, source_entry, worker_entry
+from .report import build_report, write_report
 from .source_runner import SourceRunSpec, SourceSpec
 from .worker import WorkerSpec
 
@@ -55,63 +48,18 @@ CONTROL_TOKEN_ENV = "NEOSLAM_CONTROL_TOKEN"
 log = logging.getLogger("neoslam.topology")
 
 
-@dataclass
-class PipelinePlan:
-    """The nodes of a run, the topic whose arrival marks a frame as done, and the image entry stages."""
-
-    stages: list[NodeSpec]
-    final_topic: str
-    entry_stages: list[str] = field(default_factory=list)
-    #: source topics with a consumer: the source waits for their subscribers before the first frame
-    consumed_source_topics: list[str] = field(default_factory=lambda: ["image"])
-
-
-class RunError(RuntimeError):
-    """A run could not start or finish; the text says which process and why."""
-
-
-@dataclass
-class RunResult:
-    run_dir: Path
-    report: dict[str, Any]
-    interrupted: bool = False
-    restarts: dict[str, int] = field(default_factory=dict)
-    #: the signal that interrupted the run (SIGINT, SIGTERM), if any
-    signal: int | None = None
-
-
-def group_workers(plan: PipelinePlan, topology: str) -> dict[str, list[NodeSpec]]:
-    """Worker name -> its NodeSpecs: all in one for ``monolithic``; one each for ``pipeline``,
-    except that a node with ``host`` joins the worker of the node it names."""
-    if topology == "monolithic":
-        return {"monolithic": list(plan.stages)}
-    if topology != "pipeline":
-        raise ValueError(f"unknown topology {topology!r} (pipeline or monolithic)")
-    groups: dict[str, list[NodeSpec]] = {}
-    for s in plan.stages:
-        if s.host:
-            if s.host not in groups:
-                raise ValueError(f"node {s.name!r} is to be hosted by {s.host!r}, which is not before it")
-            groups[s.host].append(s)
-        else:
-            groups[s.name] = [s]
-    return groups
-
-
-def make_run_dir(cfg: Any, out: str | Path | None) -> tuple[str, Path]:
-    name = cfg.run.name or f"{cfg.run.pipeline}-{cfg.run.topology}-{datetime.now():%Y%m%d-%H%M%S}"
-    base = Path(out) if out is not None else Path(cfg.run.out) / name
-    base.mkdir(parents=True, exist_ok=True)
-    return name, base
-
-
-class Supervisor:
-    """Runs ``plan`` with the runtime sections of ``cfg`` (``run``, ``bus``, ``source``)."""
+class Supervisor(ChildProcesses):
+    """Runs ``plan`` with the runtime sections of ``cfg`` (``run``, ``bus``, ``source``);
+    ``source_factory``: the ``"module:callable"`` that builds ``cfg.source``'s source (``launch``
+    resolves the source kind)."""
 
     def __init__(self, cfg: Any, plan: PipelinePlan, run_dir: str | Path | None = None,
-                 resume: str | Path | None = None, map_path: str | Path | None = None) -> None:
+                 resume: str | Path | None = None, map_path: str | Path | None = None,
+                 source_factory: str | None = None) -> None:
         self.cfg = cfg
         self.plan = plan
+        self.source_factory = source_factory
+        register_topics(plan.topics)  # this process decodes the final topic too (FinalTracker)
         self.name, self.run_dir = make_run_dir(cfg, run_dir)
         # a run split over several hosts (runtime/parts.py) shares one id, given to every part
         self.run_id = getattr(cfg.run, "run_id", None) or f"r{secrets.token_hex(4)}"
@@ -173,7 +121,7 @@ class Supervisor:
         specs = self.groups[wname]
         listen, connect = self._links(wname)
         connect += [e for s in specs for e in s.connect if e not in connect]
-        caps = dict(self.cfg.bus.capacity)
+        caps = {**self.plan.capacity, **self.cfg.bus.capacity}
         for s in specs:  # what a node needs at least (the recorder must not lose rows)
             for t, c in s.capacity.items():
                 caps[t] = max(c, caps.get(t, self.cfg.bus.default_capacity))
@@ -192,7 +140,7 @@ class Supervisor:
             resume_states=resume_states, expected_peers=self.order.index(wname), map_path=self.map_path,
             checkpoint_every=self.cfg.run.checkpoint_every,
             checkpoint_dir=str(self.run_dir / "checkpoint") if self.cfg.run.checkpoint_every else "",
-            control_token=self.control_token)
+            control_token=self.control_token, topics=list(self.plan.topics))
 
     def source_spec(self, start_frame: int = 0) -> SourceRunSpec:
         src = self.cfg.source
@@ -202,15 +150,17 @@ class Supervisor:
             pacing = "fixed" if src.rate else ("asap" if self.lossless else "recorded")
         if pacing == "asap" and not self.lossless:
             raise RunError("pacing 'asap' needs lossless mode (real-time runs need a rate)")
+        if self.source_factory is None:
+            raise RunError(f"no factory given for the source kind {src.kind!r} (launch.run resolves it)")
         return SourceRunSpec(
-            source=SourceSpec(source_factory(src.kind), dict(src.params)), run=self.run_id,
+            source=SourceSpec(self.source_factory, dict(src.params)), run=self.run_id,
             run_dir=str(self.run_dir), lossless=self.lossless, listen=listen, connect=connect,
             shm=self.cfg.bus.shm, pacing=pacing, rate=src.rate, rate_multiplier=src.rate_multiplier,
             max_frames=src.max_frames, duration=src.duration, window=self.cfg.bus.window,
             final_topic=self.plan.final_topic, progress=self.cfg.run.live, start_frame=start_frame,
             expected_peers=len(self.order) - 1,
             wait_topics=list(getattr(self.plan, "consumed_source_topics", ["image"])),
-            control_token=self.control_token)
+            control_token=self.control_token, topics=list(self.plan.topics))
 
     def monitor_spec(self) -> MonitorSpec:
         listen, connect = self._links("monitor")
@@ -221,7 +171,8 @@ class Supervisor:
                            entry_stages=self.plan.entry_stages,
                            workers={w: [s.name for s in specs] for w, specs in self.groups.items()},
                            meta=meta, listen=listen, connect=connect, shm=self.cfg.bus.shm,
-                           live=self.cfg.run.live, control_token=self.control_token)
+                           live=self.cfg.run.live, control_token=self.control_token,
+                           topics=list(self.plan.topics))
 
     # ------------------------------------------------------------------ processes
     def export_bus_settings(self) -> None:
@@ -245,56 +196,6 @@ class Supervisor:
         # a stage not named runs at niceness 0 and on any CPU, so its process does too
         any_cpu = any(k not in run.cpus for k in keys)
         return {"nice": min(run.nice.get(k, 0) for k in keys), "cpus": [] if any_cpu else cpus}
-
-    def _start(self, name: str, target: Any, spec: Any) -> None:
-        # the supervisor's pid: the child stops when this process dies (procs.follow_parent)
-        p = self.ctx.Process(target=target, args=(spec, os.getpid(), self.scheduling(name)), name=f"neoslam-{name}",
-                             daemon=False)
-        p.start()
-        self.procs[name] = p
-
-    def _alive_tokens(self) -> set[str]:
-        names = set()
-        for reply in self.session.liveliness().get(key_for(self.run_id, "alive/*"), timeout=1.0):
-            try:
-                names.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
-            except Exception:
-                continue
-        return names
-
-    def _wait_ready(self, names: list[str], timeout: float) -> None:
-        deadline = time.monotonic() + timeout
-        while True:
-            alive = self._alive_tokens()
-            if all(n in alive for n in names):
-                return
-            for n in names:
-                p = self.procs.get(n)
-                if p is not None and not p.is_alive() and not self.interrupts:  # Ctrl-C: no restart
-                    if n in self.groups and self.restarts.get(n, 0) < self.cfg.run.max_restarts:
-                        self._restart(n, p.exitcode)
-                        continue
-                    raise RunError(f"process {n!r} exited with code {p.exitcode} during start-up "
-                                   f"(see its log above)")
-            if time.monotonic() > deadline or self.interrupts:
-                missing = [n for n in names if n not in alive]
-                raise RunError(f"processes not ready after {timeout:.0f} s: {missing}")
-            time.sleep(0.2)
-
-    def _control(self, command: str, target: str | None = None, **extra: Any) -> None:
-        data = {"command": command, "token": self.control_token, **extra}
-        if target is not None:
-            data["target"] = target
-        self.session.put(key_for(self.run_id, "control"), encode(Message("control", 0, time.time(), data)))
-
-    def _on_signal(self, signum: int, _frame: Any) -> None:
-        self.interrupts += 1
-        self.last_signal = signum
-        if self.interrupts >= 2:
-            log.warning("second interrupt: killing every process of the run")
-            for p in self.procs.values():
-                if p.is_alive():
-                    p.kill()
 
     # ------------------------------------------------------------------ the run
     def run(self) -> RunResult:
@@ -395,113 +296,6 @@ class Supervisor:
             elif waited >= self.cfg.run.drain_s:
                 return False
 
-    def _restart_crashed(self, stopped: Collection[str] = ()) -> None:
-        """Restart the hosted workers that died (bounded); ``stopped``: workers that ended on
-        purpose (a split run's primary stopped them), not to be restarted."""
-        for w in self.hosted:
-            p = self.procs.get(w)
-            if w in stopped or p is None or p.is_alive():
-                continue
-            n = self.restarts.get(w, 0)
-            if n >= self.cfg.run.max_restarts:
-                raise RunError(f"worker {w!r} died (exit code {p.exitcode}) and was already restarted "
-                               f"{n} times; giving up")
-            self._restart(w, p.exitcode)
-            self._wait_ready([w], self.cfg.run.startup_timeout)
-
-    def _restart_monitor(self) -> None:
-        """A dead monitor is started again (bounded, reported like a worker's restart). Its figures
-        are not lost: the supervisor follows the stats and the final topic itself."""
-        p = self.procs.get("monitor")
-        if p is None or p.is_alive():
-            return
-        n = self.restarts.get("monitor", 0)
-        if n >= self.cfg.run.max_restarts:
-            if not getattr(self, "_monitor_given_up", False):
-                self._monitor_given_up = True
-                log.error("the monitor died (exit code %s) and was already restarted %d times; the run "
-                          "goes on without it (the supervisor still writes the report)", p.exitcode, n)
-            return
-        log.warning("the monitor died with exit code %s; restarting (%d/%d)", p.exitcode, n + 1,
-                    self.cfg.run.max_restarts)
-        self.restarts["monitor"] = n + 1
-        self.restart_events.append({"worker": "monitor", "time_s": round(time.time() - self.t_start, 3),
-                                    "exit_code": p.exitcode, "resumed_from_cut": None,
-                                    "frames_in_at_restart": self.collector.snapshot().get("source", {})
-                                    .get("frames_in")})
-        self._start("monitor", monitor_entry, self.monitor_spec())
-
-    def _restart(self, w: str, exitcode: int | None) -> None:
-        """Start worker ``w`` again, with each stage's newest checkpointed state when there is one."""
-        n = self.restarts.get(w, 0)
-        log.warning("worker %s died with exit code %s; restarting (%d/%d)", w, exitcode, n + 1,
-                    self.cfg.run.max_restarts)
-        self.restarts[w] = n + 1
-        spec = self.worker_spec(w)
-        cuts = []
-        for s in spec.stages:
-            path = latest_stage_state(self.run_dir / "checkpoint", s.name)
-            if path is not None:
-                spec.resume_states[s.name] = str(path)
-                cuts.append(int(path.parent.name))
-        src = self.collector.snapshot().get("source", {}) if self.collector is not None else {}
-        # what the report says about the crash: when, how, which state came back, and the source's
-        # frame count then (the frames lost in between are those the stage never saw)
-        self.restart_events.append({
-            "worker": w, "time_s": round(time.time() - self.t_start, 3), "exit_code": exitcode,
-            "resumed_from_cut": min(cuts) if cuts else None, "frames_in_at_restart": src.get("frames_in")})
-        self._start(w, worker_entry, spec)
-
-    def _shutdown(self) -> None:
-        """Stop the source, then the workers (they flush), then the monitor; nothing left behind."""
-        def stop(names: list[str], timeout: float) -> None:
-            for n in names:
-                self._control("stop", n)
-            deadline = time.monotonic() + timeout
-            for n in names:
-                p = self.procs.get(n)
-                if p is None:
-                    continue
-                p.join(max(0.1, deadline - time.monotonic()))
-                if p.is_alive():
-                    log.warning("%s did not stop in time; terminating", n)
-                    p.terminate()
-                    p.join(5)
-                if p.is_alive():
-                    p.kill()
-                    p.join(2)
-            self._wait_remote_stopped([n for n in names if n in self.groups and n not in self.hosted],
-                                      deadline)
-
-        try:
-            # the primary of a run split over hosts stops the other hosts' workers too, in order
-            workers = [w for w in self.groups if w in self.procs or (self.is_primary and w not in self.hosted)]
-            # processes that host a watcher (the recorder) go last: what the others publish up to
-            # their end (a stage's last frame, the pose cells' final actions) is still recorded
-            watchers = [w for w in workers if any(s.observer for s in self.groups[w])]
-            others = [w for w in workers if w not in watchers]
-            if self.lossless:
-                if "source" in self.procs:
-                    stop(["source"], 10)
-                stop(others, 60)
-            else:  # a live run ends at once: what is still in flight when the camera stops is lost
-                stop([n for n in ("source", *others) if n in self.procs], 60)
-            stop(watchers, 60)
-            if "monitor" in self.procs:
-                stop(["monitor"], 30)
-        finally:
-            for p in self.procs.values():
-                if p.is_alive():
-                    p.kill()
-                    p.join(2)
-
-    def _wait_remote_stopped(self, names: list[str], deadline: float) -> None:
-        """Wait until the workers ``names`` of other hosts have withdrawn their liveliness tokens."""
-        while names and time.monotonic() < deadline:
-            if not set(names) & self._alive_tokens():
-                return
-            time.sleep(0.2)
-
     def _complete_report(self, interrupted: bool) -> dict[str, Any]:
         """report.json: the monitor's (when it wrote one in this run), with every figure the
         supervisor measured itself on top: the stats and final frames over the whole run, whatever
@@ -530,8 +324,9 @@ class Supervisor:
 
 
 def run_plan(cfg: Any, plan: PipelinePlan, run_dir: str | Path | None = None,
-             resume: str | Path | None = None, map_path: str | Path | None = None) -> RunResult:
+             resume: str | Path | None = None, map_path: str | Path | None = None,
+             source_factory: str | None = None) -> RunResult:
     """Run ``plan`` to the end (or until interrupted) and return the report. ``resume``: a run
     folder to continue from its last complete checkpoint; ``map_path``: an exported map to start
-    from (a new session on an old map)."""
-    return Supervisor(cfg, plan, run_dir, resume, map_path).run()
+    from (a new session on an old map); ``source_factory``: what builds the run's source."""
+    return Supervisor(cfg, plan, run_dir, resume, map_path, source_factory).run()

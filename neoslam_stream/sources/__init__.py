@@ -1,8 +1,9 @@
 """Frame sources: where camera frames, odometry and ground truth come from.
 
-A source is a plain iterator of :class:`~neoslam_stream.sources.base.SourceFrame`; the runtime's
-source runner (``runtime.source_runner``) publishes what it yields. ``SOURCES`` names the built-in
-kinds for ``--source KIND``; ``"package.module:Class"`` names a user's own.
+A source is a plain iterator of :class:`~neoslam_stream.runtime.source.SourceFrame`; the runtime's
+source process publishes what it yields. ``SOURCES`` names the built-in kinds for ``--source KIND``
+(``"package.module:Class"`` names a user's own); ``launch`` resolves a run's kind to its factory
+here and hands it to the runtime, which knows no source module.
 """
 
 from __future__ import annotations
@@ -20,12 +21,15 @@ SOURCES: dict[str, str] = {
 }
 
 
+def check_kind(kind: str) -> str:
+    """``kind`` when it names a built-in source or a user's class (``package.module:Class``);
+    else a ValueError that lists the known kinds (the config's check of ``source.kind``)."""
+    if ":" not in kind and kind not in SOURCES:
+        raise ValueError(f"unknown source kind {kind!r}; known: {', '.join(sorted(SOURCES))} "
+                         f"(or 'package.module:Class' for your own)")
+    return kind
+
+
 def source_factory(kind: str) -> str:
     """The factory path of a source kind (a built-in name, or ``package.module:Class``)."""
-    if ":" in kind:  # a user's own source class
-        return kind
-    try:
-        return SOURCES[kind]
-    except KeyError:
-        raise ValueError(f"unknown source kind {kind!r}; known: {sorted(SOURCES)} "
-                         f"(or 'package.module:Class')") from None
+    return kind if ":" in check_kind(kind) else SOURCES[kind]

@@ -1,19 +1,15 @@
 """ROS 1 bags, ROS 2 bags (.db3 folders) and MCAP files through ``rosbags`` (no ROS installed).
 
 Frames are the messages of ``image_topic`` (sensor_msgs Image or CompressedImage). Each frame
-carries the wheel odometry of the interval since the previous frame (``odom_topic``,
-nav_msgs/Odometry: forward speed twist.linear.x and yaw rate twist.angular.z, as OpenRatSLAM reads
-them; each twist holds until the next odometry message and is integrated up to the frame's stamp,
-so summing vtrans*dt and vrot*dt over frames reproduces the odometry), and the ground truth at the
-frame's stamp (``groundtruth_topic``: geometry_msgs PoseStamped / PoseWithCovarianceStamped,
-nav_msgs Odometry, or sensor_msgs NavSatFix converted to local metres with an equirectangular
-projection around the first valid fix; fixes with a zero latitude or longitude or a negative
-status are dropped). Ground truth is read in a first pass and interpolated linearly in time
-between the two samples around each frame (heading: the short way round; NavSatFix has none, its
-heading is the course over ground); frames more than ``groundtruth_max_gap_s`` before the first or
-after the last sample get none. Without an image topic, frames are the odometry messages (or the
-ground-truth messages): odometry-only runs of the back end. Stamps are header stamps (the bag's
-receive time when a header stamp is zero).
+carries the wheel odometry of the interval since the previous frame (``odom_topic``, nav_msgs/Odometry
+twist.linear.x and twist.angular.z as OpenRatSLAM reads them; each twist holds until the next one
+and is integrated up to the frame's stamp, so the frames' vtrans*dt and vrot*dt sum to the
+odometry) and the ground truth at the frame's stamp (``groundtruth_topic``: PoseStamped,
+PoseWithCovarianceStamped, Odometry, or NavSatFix in local metres), interpolated linearly in time
+between the samples around it; none more than ``groundtruth_max_gap_s`` outside their span.
+Without an image topic, frames are the odometry (or ground-truth) messages: odometry-only runs of
+the back end. Stamps are header stamps (the receive time when a header stamp is zero). Details:
+docs/sources.md, "bag".
 """
 
 from __future__ import annotations

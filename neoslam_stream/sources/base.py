@@ -1,40 +1,21 @@
-"""What every frame source yields, and how a source is described.
+"""The base class of the built-in sources, on the runtime's :class:`~neoslam_stream.runtime.source.Source`
+protocol.
 
 A source is any iterable of :class:`SourceFrame` (a synthetic world, an image folder, a video, a bag,
-a zenoh camera). The runtime's source worker turns each frame into an ``image`` message, plus
-``odom`` and ``groundtruth`` messages with the **same frame number** when present, paces them
-(recorded rate, fixed rate, or as fast as the pipeline takes in lossless mode) and publishes them.
-Sources know nothing about zenoh topics or processes.
+a zenoh camera). The runtime's source process turns each frame into an ``image`` message, plus
+``odom`` and ``groundtruth`` messages with the **same frame number** when present, paces and
+publishes them. Sources know nothing about zenoh topics or processes.
 """
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterator
-from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
+from ..runtime.source import SourceFrame
 
-
-@dataclass
-class SourceFrame:
-    """One camera frame and what was measured with it.
-
-    ``frame`` is the source's sequence number, consecutive from 0 (a gap means the source itself
-    lost a frame). ``stamp`` is source time in seconds. Exactly one of ``image`` (HxW or HxWxC uint8,
-    ``encoding`` rgb8/bgr8/mono8) and ``compressed`` (JPEG/PNG bytes, ``format`` "jpeg"/"png") is set,
-    or neither for odometry-only sources. ``odom`` is ``(vtrans m/s, vrot rad/s, dt s)`` over the
-    interval ending at this frame; ``groundtruth`` is ``(x, y, theta)`` in metres/radians.
-    """
-
-    frame: int
-    stamp: float
-    image: np.ndarray | None = None
-    encoding: str = "rgb8"
-    compressed: bytes | None = None
-    format: str | None = None
-    odom: tuple[float, float, float] | None = None
-    groundtruth: tuple[float, float, float] | None = None
+__all__ = ["Source", "SourceFrame"]
 
 
 class Source:
@@ -56,8 +37,6 @@ class Source:
 
     def record_error(self, cause: str) -> None:
         """Count a skipped record (an unreadable odometry row, an undecodable sample...)."""
-        import logging
-
         if cause not in self.errors:
             logging.getLogger(type(self).__module__).warning("%s: %s", type(self).__name__, cause)
         self.errors[cause] = self.errors.get(cause, 0) + 1

@@ -1,22 +1,16 @@
 """Pixels at the sources: ROS image encodings to 8-bit frames, and images bounded in size.
 
-**ROS ``sensor_msgs/Image`` encodings** (:func:`ros_image`). 8-bit encodings pass through
-unchanged (a zero-copy view of the message's rows, row padding dropped). 16-bit encodings
-(``mono16``, ``16UC1``, ``rgb16``, ``bgr16``, ``rgba16``, ``bgra16``; ``is_bigendian`` honoured)
-become 8-bit by mapping **the frame's own range** [min, max] linearly onto 0..255 (colour
-channels together, so the colour balance is kept; alpha is dropped; a constant frame is black).
-Why not ``>> 8``: 16-bit cameras rarely fill 16 bits (10-14-bit sensors, thermal cameras whose
-scene spans a few hundred counts, depth in millimetres), and keeping the high byte would leave
-such frames almost black, with nothing for the front end to recognise. The stretch is the
-per-frame normalisation image viewers apply to 16-bit frames.
+:func:`ros_image`: 8-bit encodings pass through (a zero-copy view of the rows, padding dropped);
+16-bit encodings (``is_bigendian`` honoured) become 8-bit by mapping the frame's own range
+[min, max] linearly onto 0..255, colour channels together, alpha dropped. Why not ``>> 8``: 16-bit
+cameras rarely fill 16 bits (10-14-bit sensors, thermal, depth in millimetres), and the high byte
+alone would leave such frames almost black.
 
-**Size** (:func:`fit`, :func:`decode_bounded`). A valid but large image (an 8000 x 6000 photo)
-is resized at the source so that its long side is at most ``max_side`` pixels (INTER_AREA).
-A JPEG is decoded at a reduced scale (libjpeg's 1/2, 1/4, 1/8 DCT scaling, OpenCV's
-``IMREAD_REDUCED_COLOR_n``) so that the whole frame is never held in memory; other formats are
-decoded whole, then resized. Headers claiming more than
-:data:`~neoslam_stream.runtime.imageinfo.MAX_PIXELS` are not decoded here at all: the data goes
-on as it is and the front end refuses it with its cause.
+:func:`fit`, :func:`decode_bounded`: a valid but large image is resized at the source so that its
+long side is at most ``max_side`` pixels (INTER_AREA); a JPEG is decoded at a reduced DCT scale so
+the whole frame is never held in memory. Headers claiming more than
+:data:`~neoslam_stream.runtime.imageinfo.MAX_PIXELS` are not decoded here: the front end refuses
+them with their cause. Details: docs/sources.md, "Large images and 16-bit frames".
 """
 
 from __future__ import annotations

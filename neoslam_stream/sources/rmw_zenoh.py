@@ -1,22 +1,17 @@
 """ROS 2 nodes running rmw_zenoh (ROS 2's zenoh middleware): keys, attachments, and a camera source.
 
 rmw_zenoh publishes a topic on the key ``<domain_id>/<fully qualified name without its leading
-slash>/<DDS type name>/<type hash>``, e.g.
-``0/camera/image_raw/sensor_msgs::msg::dds_::Image_/RIHS01_<64 hex>``. The type hash is the
-REP-2011 RIHS01 hash of the type description (Jazzy and later); Humble's rmw_zenoh puts
-``TypeHashNotSupported`` there. Every sample carries an attachment with the publisher's
-sequence number, a source timestamp and its GID, encoded as rmw_zenoh's design document describes:
-int64 sequence number (little-endian), int64 timestamp (ns since the UNIX epoch, little-endian),
-the GID's length as one byte (16) and the 16 GID bytes. The first rmw_zenoh releases for zenoh
-1.0 wrote the same three values as key/value pairs (each key a length-prefixed string before its
-value); :func:`parse_attachment` reads both.
+slash>/<DDS type name>/<type hash>`` (the REP-2011 RIHS01 hash from Jazzy on, Humble writes
+``TypeHashNotSupported``). Every sample carries an attachment with the publisher's sequence number,
+a source timestamp and its GID (int64 LE, int64 LE ns, one length byte and the 16 GID bytes, as
+rmw_zenoh's design document describes; :func:`parse_attachment` also reads the key/value form of
+the first releases).
 
 :class:`RmwZenohCameraSource` (source kind ``rmw-zenoh``) subscribes to an image topic (and
 optionally a nav_msgs/Odometry topic) with a wildcard on the type name and the hash, so it takes
-any distribution's hash; the type name in each sample's key says whether it is a
-sensor_msgs/Image or a CompressedImage. The payload is the same CDR that zenoh-bridge-ros2dds
-delivers, decoded by :mod:`.cdr` through :class:`~.zenoh_camera.ZenohRos2CameraSource`'s code. The
-attachments' sequence numbers count, per publisher GID, the messages lost before they reached us.
+any distribution's; the payload is the CDR that :class:`~.zenoh_camera.ZenohRos2CameraSource`
+decodes, and the sequence numbers count, per publisher, the messages lost before they reached us.
+Details: docs/sources.md, "rmw-zenoh".
 """
 
 from __future__ import annotations

@@ -1,19 +1,16 @@
 """The embedded default data: a deterministic synthetic world with loops, odometry and ground truth.
 
 A 10 m x 8 m floor plan of textured walls: an outer wall and a central block make a ring corridor
-(the loop); door frames split the ring into four rooms (south-west, south-east, north-east,
-north-west) and a pillar and a partition stand in two of them. Every wall has its own procedural
-texture (seeded stripes, blobs and colour, with large dark "poster" blobs as landmarks) so places
-are recognisable; one texture is used by two walls and all door frames share one, so perceptual
-aliasing exists. Frames are rendered per image column by ray casting (default 416x240 RGB, 90 deg
-field of view, iRat-like), floor and ceiling shaded by distance.
+(the loop), door frames split it into four rooms, a pillar and a partition stand in two of them.
+Every wall has its own seeded procedural texture with dark "poster" blobs as landmarks; one texture
+is used twice and all door frames share one, so perceptual aliasing exists. Frames are ray cast per
+image column (default 416x240 RGB, 90 deg field of view, iRat-like).
 
-The robot drives the ring at 0.3 m/s, 10 Hz: ``laps_cw`` laps one way, then ``laps_ccw`` laps the
-other way (revisits in both directions), turning on the spot at ``turn_rate`` where the direction
-changes; the route is closed (it ends where and how it starts), so ``loop: true`` or ``frames``
-beyond one route repeat it seamlessly. Wheel odometry = true motion with a speed scale bias, a
-yaw-rate bias, a yaw-rate random walk and white noise; ground truth is exact. Everything is
-vectorised numpy and seeded.
+The robot drives the ring: ``laps_cw`` laps one way, then ``laps_ccw`` the other (revisits in both
+directions), turning on the spot where the direction changes; the route is closed, so ``loop:
+true`` or ``frames`` beyond one route repeat it seamlessly. Wheel odometry = true motion with a
+speed scale bias, a yaw-rate bias, a yaw-rate random walk and white noise; ground truth is exact.
+Everything is vectorised numpy and seeded (docs/sources.md, "synthetic").
 """
 
 from __future__ import annotations

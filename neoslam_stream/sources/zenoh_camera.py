@@ -8,7 +8,7 @@ topic gives the odometry of the interval since the previous frame. Connect to th
 (``connect: [tcp/<bridge-host>:7447]``).
 
 ``zenoh`` (:class:`ZenohImageSource`): our own msgpack ``image`` messages on any key (a non-ROS
-camera publishing with :func:`neoslam_stream.messages.encode`).
+camera publishing with :func:`neoslam_stream.runtime.messages.encode`).
 
 Both are live (length None): they yield frames as they arrive, newest first when the consumer is
 slower (a small ring), until ``close()`` or ``timeout_s`` without frames. A bad sample is counted

@@ -1,5 +1,6 @@
-"""RatSLAM back end (pose cells, experience map) and baseline front end (local-view cells, visual
-odometry), after OpenRatSLAM (davidmball/ratslam). See docs/ratslam.md.
+"""RatSLAM back end (pose cells, experience map, and the yaw-bias estimator and odometry gate that
+correct their input) and baseline front end (local-view cells, visual odometry), after OpenRatSLAM
+(davidmball/ratslam). See docs/ratslam.md.
 
 Names are imported lazily so that importing one module (e.g. a config model) does not pull in
 every other one.
@@ -13,9 +14,11 @@ from typing import Any
 _EXPORTS = {
     "PoseCellNetwork": "pose_cells", "PoseCellConfig": "pose_cells",
     "NO_ACTION": "pose_cells", "CREATE_NODE": "pose_cells", "CREATE_EDGE": "pose_cells", "SET_NODE": "pose_cells",
-    "ExperienceMap": "experience_map", "ExperienceMapConfig": "experience_map",
+    "ExperienceMap": "experience_map", "ExperienceMapConfig": "experience_map", "poses_on_map": "experience_map",
     "LocalViewCells": "local_view", "LocalViewConfig": "local_view",
     "VisualOdometry": "visual_odometry", "VisualOdometryConfig": "visual_odometry",
+    "YawBiasEstimator": "odometry_bias", "OdometryBiasConfig": "odometry_bias",
+    "OdometryGate": "odometry_gate", "OdometryGateConfig": "odometry_gate",
 }
 __all__ = sorted(_EXPORTS)
 

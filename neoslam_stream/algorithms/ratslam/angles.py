@@ -1,5 +1,5 @@
-"""Angle helpers shared by the experience map and the odometry-bias estimator (a light module:
-the pose cells import the estimator and must not pull in the experience map's numba kernels)."""
+"""Angle helpers shared by the experience map and the odometry-bias estimator (a light module, so
+that the estimator does not pull in the experience map's numba kernels)."""
 
 from __future__ import annotations
 

@@ -1,27 +1,16 @@
-"""RatSLAM experience map: experiences (nodes), links, dead reckoning and graph relaxation.
+"""RatSLAM experience map (OpenRatSLAM's ``ExperienceMap``): experiences, links, dead reckoning
+and graph relaxation.
 
-As OpenRatSLAM: odometry is integrated into ``accum_dx/dy`` (absolute heading ``accum_facing``,
-starting at exp_initial_em_deg) since the current experience; CREATE_NODE places a node at the
-current one plus that displacement and links them; CREATE_EDGE links the current experience to an
-existing one (no duplicate in either direction); both then make the destination current (resetting
-the accumulators, heading = node heading + relative_rad). After every action the graph is relaxed:
-``exp_loops`` sequential Gauss-Seidel sweeps in node order and link insertion order, each link
-pulling both ends by ``exp_correction`` of its position and heading error.
+Odometry accumulates into ``accum_dx/dy`` along the absolute heading ``accum_facing`` (starting at
+exp_initial_em_deg) since the current experience. CREATE_NODE places a node at the current one plus
+that displacement and links them; CREATE_EDGE links the current experience to an existing one (no
+duplicate in either direction); both make the destination current (heading = its heading +
+relative_rad). After every action ``exp_loops`` Gauss-Seidel sweeps in node and link order pull
+both ends of each link by ``exp_correction`` of its position and heading error.
 
-``openratslam_compat=True`` keeps the C++ quirks that the default fixes:
-
-1. a link's ``delta_time_s`` accumulates without reset (fixed: reset with the other accumulators);
-2. the first experience does not reset the dead-reckoning accumulators (the C++ current id starts
-   at 0, so making node 0 current is a no-op and the second node is placed with the first node's
-   displacement counted twice) (fixed: reset);
-3. CREATE_EDGE draws the link from the action's ``src_id`` although the dead reckoning it stores
-   was accumulated since the map's current experience; the two differ only after a lost action
-   (fixed: the link starts at the current experience).
-
-Experience ids come from the pose cells and are normally 0, 1, 2...; the map keeps its own
-consecutive indices and a table from those ids, so a lost or repeated action never breaks it: a
-CREATE_NODE for a known id, or a link or set to an unknown id, is handled as the nearest sensible
-action (link to the known experience; create the unknown one where dead reckoning puts it).
+``openratslam_compat=True`` keeps three C++ quirks that the default fixes (marked "fix n" below,
+tabled in docs/ratslam.md). The map maps the pose cells' experience ids onto its own indices, so a
+lost or repeated action is repaired (a link to a known id, a node for an unknown one), not refused.
 """
 
 from __future__ import annotations
@@ -49,11 +38,9 @@ class ExperienceMapConfig(BaseModel):
     exp_correction: float = 0.5
     exp_initial_em_deg: float = 90.0
     openratslam_compat: bool = False
-    #: issue #14: robust relaxation. 0 (OpenRatSLAM): every link pulls by exp_correction of its
-    #: error. k > 0 (metres): a link whose position error is r pulls by exp_correction * k^2 / (k^2
-    #: + r^2) of it (a Cauchy weight, recomputed at every sweep), so a link whose error stays
-    #: large, as a wrong loop closure's does, moves the map by at most exp_correction * k / 2 per
-    #: sweep, while links that agree with the rest (small r) pull as in OpenRatSLAM.
+    #: robust relaxation: k > 0 (metres) scales a link's pull by the Cauchy weight k^2 / (k^2 + r^2)
+    #: of its position error r, so a wrong loop closure (r stays large) moves the map by at most
+    #: exp_correction * k / 2 per sweep; 0: every link pulls by exp_correction (OpenRatSLAM)
     exp_robust_m: float = Field(0.0, ge=0)
 
 
@@ -149,7 +136,7 @@ class ExperienceMap:
     """
 
     def __init__(self, config: ExperienceMapConfig | None = None, **overrides: Any) -> None:
-        self.cfg = self.config = make_config(ExperienceMapConfig, config, overrides)
+        self.config = make_config(ExperienceMapConfig, config, overrides)
         self._nodes = np.zeros((0, 4))  # x, y, th, stamp
         self._n = 0
         self._lf = np.zeros((0, 2), dtype=np.int64)  # from, to (indices)
@@ -160,9 +147,14 @@ class ExperienceMap:
         self.index: dict[int, int] = {}  # experience id -> index
         self._cur = -1
         self.accum_dx = self.accum_dy = self.accum_t = 0.0
-        self.accum_facing = math.radians(self.cfg.exp_initial_em_deg)
+        self.accum_facing = math.radians(self.config.exp_initial_em_deg)
         self.relax_time_s = 0.0
         self.repaired_actions = 0
+
+    @property
+    def cfg(self) -> ExperienceMapConfig:
+        """Read-only alias of :attr:`config`."""
+        return self.config
 
     # ---------------------------------------------------------------- views
     @property
@@ -259,14 +251,14 @@ class ExperienceMap:
     def _set(self, e: int, rel_rad: float) -> None:
         if e == self._cur:
             return
-        if self._cur < 0 and e == 0 and self.cfg.openratslam_compat:
-            # the C++ starts with current id 0, so making the first node current is a no-op and
-            # its dead-reckoning accumulators are never reset (the second node lands twice as far)
+        if self._cur < 0 and e == 0 and self.config.openratslam_compat:
+            # the C++ quirk that fix 2 removes: its current id starts at 0, so making the first node
+            # current is a no-op and the accumulators are never reset (the second node lands twice as far)
             self._cur = 0
             return
         self._cur = e
         self.accum_dx = self.accum_dy = 0.0
-        if not self.cfg.openratslam_compat:
+        if not self.config.openratslam_compat:  # fix 1: the C++ never resets a link's delta_time_s
             self.accum_t = 0.0
         self.accum_facing = clip_pi(float(self._nodes[e, 2]) + rel_rad)
 
@@ -288,8 +280,8 @@ class ExperienceMap:
             self.repaired_actions += int(action == CREATE_NODE)
             d = self.index[dst]
             a = self._cur
-            if self.cfg.openratslam_compat and src in self.index:
-                a = self.index[src]
+            if self.config.openratslam_compat and src in self.index:
+                a = self.index[src]  # the C++ links from src_id (fix 3: from the current one)
             if a >= 0:
                 self._link(a, d, rel_rad)
             self._set(d, rel_rad)
@@ -299,7 +291,7 @@ class ExperienceMap:
 
     def iterate(self) -> None:
         """One relaxation: exp_loops sequential sweeps with exp_correction (numba)."""
-        if self._m == 0 or self.cfg.exp_loops == 0:
+        if self._m == 0 or self.config.exp_loops == 0:
             return
         t0 = time.perf_counter()
         nodes = self._nodes
@@ -307,7 +299,7 @@ class ExperienceMap:
         lf, lv = self._lf[: self._m], self._lv[: self._m]
         _relax(x, y, th, np.ascontiguousarray(lf[:, 0]), np.ascontiguousarray(lf[:, 1]),
                np.ascontiguousarray(lv[:, 0]), np.ascontiguousarray(lv[:, 1]), np.ascontiguousarray(lv[:, 2]),
-               self.cfg.exp_loops, self.cfg.exp_correction, self.cfg.exp_robust_m)
+               self.config.exp_loops, self.config.exp_correction, self.config.exp_robust_m)
         nodes[: self._n, 0], nodes[: self._n, 1], nodes[: self._n, 2] = x, y, th
         self.relax_time_s = time.perf_counter() - t0
 

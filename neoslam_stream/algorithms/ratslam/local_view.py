@@ -1,26 +1,18 @@
-"""RatSLAM's local-view cells (the baseline front end): image templates matched by SAD.
+"""RatSLAM's local-view cells (OpenRatSLAM's ``LocalViewMatch``), the baseline front end: image
+templates matched by the sum of absolute differences.
 
-Template of an image: grey levels (colour channels averaged, as the C++), crop ``[image_crop_x_min, x_max)`` columns x
-``[image_crop_y_min, y_max)`` rows (-1 = to the edge), block means of ``floor(w/X) x floor(h/Y)``
-pixels into ``template_x_size x template_y_size`` (leftover pixels ignored, as OpenRatSLAM), scaled
-to [0, 1]; optional global normalisation (``vt_normalisation``) and local patch normalisation
-(``vt_patch_normalise``).
+Template: grey levels (colour channels summed and divided by 3*255, as the C++), cropped to
+``image_crop_*`` (-1: the image edge), block means into ``template_x_size x template_y_size`` cells
+(leftover pixels ignored), optionally normalised globally (``vt_normalisation``) and per patch
+(``vt_patch_normalise``). Matching skips templates whose mean differs by more than
+``vt_match_threshold`` + 0.005 and compares the central columns ``[S, X-S)`` with the shifts ``0,
+step, .., 2S`` (S = vt_shift_match), or every circular shift in panoramic mode (``relative_rad``).
+The lowest mean absolute difference wins (the first on ties); at most ``vt_match_threshold`` is a
+match, otherwise a new template (ids from 0). A compiled loop sums in the C++'s order and stops a
+candidate once it exceeds the best: the errors are OpenRatSLAM's to the last bit.
 
-Matching against all stored templates at once (numpy broadcasting): templates whose mean differs
-by more than ``vt_match_threshold + 0.005`` are skipped; non-panoramic mode compares the central
-columns ``[S, X-S)`` with every shift ``0, step, .., 2S`` of the template (S = vt_shift_match), error
-= mean absolute difference; panoramic mode tries every circular shift and reports it as
-``relative_rad``. The lowest error wins (first template, first shift on ties); at most
-``vt_match_threshold`` is a match, otherwise a new template is created (ids from 0).
-
-The match is one compiled loop over (template, shift) that sums in the C++'s order and stops a
-candidate as soon as its partial sum exceeds the best so far, as the C++ does: the errors are
-bit-identical to OpenRatSLAM's, and it does not materialise every difference as numpy
-broadcasting would (times: bench/results/ratslam.json, docs/ratslam.md).
-
-``openratslam_compat`` changes one thing: with ``vt_min_patch_normalisation_std`` 0 (its default) a
-flat patch (std 0) makes the C++ divide 0 by 0 and clamp the NaN to 1.0; the default gives it the
-neutral 0.5 that the C++ gives patches below the minimum std.
+``openratslam_compat`` changes one thing: a flat patch with ``vt_min_patch_normalisation_std`` 0
+gives 0/0 in the C++, clamped to 1.0; the default gives it the C++'s neutral 0.5.
 """
 
 from __future__ import annotations
@@ -41,7 +33,9 @@ MEAN_EPSILON = 0.005
 
 
 class LocalViewConfig(BaseModel):
-    """OpenRatSLAM's local-view parameters with the C++ code defaults (-1 = image edge)."""
+    """OpenRatSLAM's local-view parameters (-1 = image edge), with the C++ code defaults except the
+    template size and shift: the C++'s 1 x 1 template with shift 25 (step 5) leaves no column to
+    compare, so the defaults are the iRat 2011 settings (60 x 20 cells, shift 4, step 1)."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -49,10 +43,10 @@ class LocalViewConfig(BaseModel):
     image_crop_x_max: int = -1
     image_crop_y_min: int = Field(0, ge=0)
     image_crop_y_max: int = -1
-    template_x_size: int = Field(1, ge=1)
-    template_y_size: int = Field(1, ge=1)
-    vt_shift_match: int = Field(25, ge=0)
-    vt_step_match: int = Field(5, ge=1)
+    template_x_size: int = Field(60, ge=1)
+    template_y_size: int = Field(20, ge=1)
+    vt_shift_match: int = Field(4, ge=0)
+    vt_step_match: int = Field(1, ge=1)
     vt_match_threshold: float = 0.03
     vt_normalisation: float = 0.0
     vt_patch_normalise: int = Field(0, ge=0)
@@ -121,8 +115,7 @@ class LocalViewCells:
         _best_match(np.zeros((1, 1, 4)), np.zeros(1, np.int64), np.zeros((1, 4)), 1, 1, False)
 
     def __init__(self, config: LocalViewConfig | None = None, **overrides: Any) -> None:
-        self.cfg = self.config = make_config(LocalViewConfig, config, overrides)
-        c = self.cfg
+        self.config = c = make_config(LocalViewConfig, config, overrides)
         if not c.vt_panoramic and 2 * c.vt_shift_match >= c.template_x_size:
             raise ValueError(f"vt_shift_match {c.vt_shift_match} too large for template_x_size {c.template_x_size}")
         self._store = np.zeros((0, c.template_y_size, c.template_x_size))  # grows by doubling
@@ -143,7 +136,7 @@ class LocalViewCells:
 
     def add_template(self, t: np.ndarray) -> int:
         """Store a template (as made by :meth:`view_template`) and return its id."""
-        c = self.cfg
+        c = self.config
         t = np.asarray(t, dtype=np.float64)
         if t.shape != (c.template_y_size, c.template_x_size):
             raise ValueError(f"template shape {t.shape} != {(c.template_y_size, c.template_x_size)}")
@@ -158,7 +151,7 @@ class LocalViewCells:
 
     def view_template(self, grey: np.ndarray) -> np.ndarray:
         """HxW grey or HxWxC colour (0..255) -> the template_y_size x template_x_size template in [0, 1]."""
-        c = self.cfg
+        c = self.config
         img = np.asarray(grey)
         if img.ndim not in (2, 3) or img.size == 0:
             raise InvalidInput(f"expected a grey (HxW) or colour (HxWxC) image, got shape {img.shape}")
@@ -194,13 +187,13 @@ class LocalViewCells:
         with np.errstate(divide="ignore", invalid="ignore"):
             out = np.clip(((t - mu) / sd + 3.0) / 6.0, 0.0, 1.0)
         flat = sd == 0
-        out[flat] = 1.0 if self.cfg.openratslam_compat else 0.5  # C++: min(1, NaN) is 1
-        out[sd < self.cfg.vt_min_patch_normalisation_std] = 0.5
+        out[flat] = 1.0 if self.config.openratslam_compat else 0.5  # C++: min(1, NaN) is 1
+        out[sd < self.config.vt_min_patch_normalisation_std] = 0.5
         return out
 
     def compare(self, t: np.ndarray) -> tuple[int, float, float]:
         """(best template, error, relative_rad) over all templates; (-1, inf, 0) when none qualifies."""
-        c = self.cfg
+        c = self.config
         if len(self.templates) == 0:
             return -1, math.inf, 0.0
         keep = np.flatnonzero(np.abs(self.means - _seq_mean(t)) <= c.vt_match_threshold + MEAN_EPSILON)
@@ -221,18 +214,29 @@ class LocalViewCells:
         t = self.view_template(grey)
         best, err, rad = self.compare(t)
         self.last_error = err
-        if best >= 0 and err <= self.cfg.vt_match_threshold:
+        if best >= 0 and err <= self.config.vt_match_threshold:
             self.current_id, self.relative_rad = best, rad
         else:
             self.current_id, self.relative_rad = self.add_template(t), 0.0
         return self.current_id, self.relative_rad
 
     def state_dict(self) -> dict[str, Any]:
+        """The templates, (n, template_y_size, template_x_size), and the current id."""
         return {"templates": self.templates.copy(), "current": self.current_id}
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
-        self._store = np.array(st["templates"], dtype=float).reshape(
-            -1, self.cfg.template_y_size, self.cfg.template_x_size)
+        """Restore :meth:`state_dict`; templates of another size are refused (ValueError)."""
+        c = self.config
+        store = np.array(st["templates"], dtype=float)
+        if store.size == 0:
+            store = store.reshape(0, c.template_y_size, c.template_x_size)
+        if store.ndim != 3:
+            raise ValueError(f"checkpoint's templates have shape {store.shape}, expected (n, y, x)")
+        for field, got, want in (("template_y_size", store.shape[1], c.template_y_size),
+                                 ("template_x_size", store.shape[2], c.template_x_size)):
+            if got != want:
+                raise ValueError(f"{field}: the checkpoint's is {got}, the config's {want}")
+        self._store = store
         self._n = self._store.shape[0]
         # the C++ keeps the mean it computed when the template was made: the same sum, recomputed
         self._means = np.array([_seq_mean(t) for t in self._store])

@@ -1,46 +1,18 @@
-"""Yaw-rate bias of the wheel odometry, estimated from loop closures (issue #14).
+"""Yaw-rate bias b of the wheel odometry, estimated from loop closures and subtracted.
 
-Wheel odometry turns the robot's heading by a small, slowly varying error per second (unequal
-wheel radii, a gyro's bias): over one lap of the synthetic world it amounts to tens of degrees,
-and dead reckoning between recognised places, and across a stretch where no place is recognised
-at all (a lap driven the other way), bends the map with it. A loop closure measures it: when the
-pose cells return to an experience e (CREATE_EDGE or SET_NODE to it) and the view was recognised,
-the robot faces as it faced when e was created (plus the view's relative rotation), so the heading
-the raw odometry integrated in between, minus that, is the accumulated error
+A loop closure measures the heading error accumulated since the place was first seen: the robot
+faces as it faced then (plus the view's relative rotation), so with H(t) the raw yaw rate's
+integral and gap_i = t - t_e
 
-    drift_i = wrap(H(t) - H(t_e) - relative_rad - b gap_i) + b gap_i,   gap_i = t - t_e,
+    drift_i = wrap(H(t) - H(t_e) - relative_rad - b gap_i) + b gap_i
 
-(H the integral of the raw yaw rate; the wrap is taken around the current estimate b, so a drift
-beyond half a turn over a long gap is still counted whole). The bias is the least-squares rate of
-these samples, b = sum w_i drift_i gap_i / sum w_i gap_i^2, with w_i = exp(-age_i / forget_s)
-(older closures count less, so a drifting bias is followed); a closure seen less than
-``min_gap_s`` after its experience was created says too little and is not used, and one whose
-rate drift_i / gap_i differs from b by more than ``max_residual_rad_s`` is counted as an outlier
-and left out. The pose cells and the experience map then integrate vrot - b.
-
-Where the samples come from (``samples_from``):
-
-* ``actions`` (the default): the pose cells' returns to an experience, as above. They exist only
-  where the recognised view also moved the pose cells, so the first samples wait for the pose
-  cells to accept a closure.
-* ``templates``: the recognitions themselves. Each visual template's raw heading H and time are
-  noted when the pose-cell node first receives it; whenever a template arrives again (a return:
-  it differs from the template received just before) at least ``min_gap_s`` after its birth, the
-  same drift sample is taken with t_e its birth. A recognised view measures the heading whether or
-  not it is the right place: a look-alike at the other end of a corridor faces the same way, so
-  the estimate converges from the first recognitions, before (and independently of) what the pose
-  cells and an odometry gate make of them. This is what lets an odometry gate work on a long run
-  with a large yaw bias (the TUC corridor: docs/mapping.md).
-
-``bidirectional``: a front end that recognises a place seen the other way round too (the TUC
-corridor's candidates: an omnidirectional or symmetric view) says the heading only up to half a
-turn, so the wrap above is taken modulo pi instead of 2 pi (a sample off by half a turn is then
-the same sample). Without it such a recognition gives a sample off by half a turn, which the
-residual test rejects once an estimate exists, but only while pi / gap exceeds
-``max_residual_rad_s``: on long gaps a reversed view looks like a moderate bias. A forward camera
-(the synthetic world) does not see a place the other way round: ``false``.
-
-``enabled: false`` (the model's default; the paper profile) integrates the odometry as it comes.
+(wrapped around the current estimate; modulo pi when ``bidirectional``, for a front end that also
+recognises a place seen the other way round). b = sum w_i drift_i gap_i / sum w_i gap_i^2, with
+w_i = exp(-age_i / forget_s); closures sooner than ``min_gap_s`` are not used, and a rate further
+than ``max_residual_rad_s`` from b is an outlier. Samples come from the pose cells' returns to an
+experience (``samples_from: actions``) or from every recognised template (``templates``: a
+look-alike faces the same way, so it measures the heading too). ``enabled: false`` (the default,
+OpenRatSLAM) passes the odometry through. Study and figures: docs/mapping.md.
 """
 
 from __future__ import annotations
@@ -78,8 +50,7 @@ class YawBiasEstimator:
     :meth:`on_template` (each ignores what ``samples_from`` does not name)."""
 
     def __init__(self, config: OdometryBiasConfig | None = None, **overrides: Any) -> None:
-        self.config = cfg = make_config(OdometryBiasConfig, config, overrides)
-        self.enabled = cfg.enabled
+        self.config = make_config(OdometryBiasConfig, config, overrides)
         #: the estimate b (rad/s), subtracted from every yaw rate once known
         self.bias = 0.0
         #: H(t): the raw yaw rate's integral, and t: the odometry's time
@@ -92,6 +63,10 @@ class YawBiasEstimator:
         self._last_sample_t = 0.0
         self.samples = 0
         self.outliers = 0
+
+    @property
+    def enabled(self) -> bool:
+        return self.config.enabled
 
     def correct(self, vrot: float, dt: float) -> float:
         """Integrate one raw odometry sample; the yaw rate to use (vrot - b when enabled)."""
@@ -166,5 +141,5 @@ class YawBiasEstimator:
         (self.bias, self.heading, self.t, self._sum_dg, self._sum_gg, self._last_sample_t,
          samples, outliers) = (float(v) for v in st["scalars"])
         self.samples, self.outliers = int(samples), int(outliers)
-        self.last_template = int(st.get("last_template", -1))  # checkpoints written before samples_from
+        self.last_template = int(st.get("last_template", -1))  # absent from older checkpoints
         self.born = {int(k): (float(h), float(t)) for k, h, t in np.asarray(st["born"], dtype=np.float64).reshape(-1, 3)}

@@ -1,19 +1,13 @@
-"""Rejection of loop closures that odometry cannot explain (issue #14).
+"""Odometry gate: loop closures that dead reckoning cannot explain do not reach the pose cells.
 
-The back end knows roughly where the robot is: wheel odometry since the last place it recognised.
-This gate keeps that estimate and the place where each visual template was first seen, and lets
-a recognised template reach the pose cells only when its place is within
-
-    r(t) = radius_m + drift * L(t)
-
-of the estimate, L(t) being the path length driven since the last accepted recognition (the
-odometry error grows with the distance driven, ``drift`` metres per metre). An accepted
-recognition moves the estimate to the template's place and resets L; a refused one changes
-nothing, so a wrong look-alike far away (a door frame in another room, the other end of a
-corridor) cannot pull the map. The heading is always odometry's (a place can be revisited in
-the other direction).
-
-``radius_m = 0`` switches the gate off (every template reaches the pose cells: OpenRatSLAM).
+The gate integrates the odometry, re-anchored at every accepted recognition, and keeps the place
+where each visual template was first seen. A recognised template passes only when its place lies
+within r(t) = radius_m + drift * L(t) of the estimate, L(t) the path length driven since the last
+accepted recognition (odometry's error grows with the distance driven). An accepted recognition
+moves the estimate to the template's place and resets L; a refused one changes nothing, so a
+look-alike far away cannot pull the map. The heading stays odometry's (a place may be revisited
+the other way round). ``radius_m = 0`` (the default) switches the gate off: every template passes,
+as in OpenRatSLAM.
 """
 
 from __future__ import annotations
@@ -40,9 +34,7 @@ class OdometryGate:
     """Dead reckoning re-anchored at accepted recognitions; see the module docstring."""
 
     def __init__(self, config: OdometryGateConfig | None = None, **overrides: Any) -> None:
-        self.config = cfg = make_config(OdometryGateConfig, config, overrides)
-        self.radius_m = cfg.radius_m
-        self.drift = cfg.drift
+        self.config = make_config(OdometryGateConfig, config, overrides)
         self.x = self.y = self.th = 0.0
         self.path_m = 0.0
         self.places: dict[int, tuple[float, float]] = {}
@@ -51,7 +43,7 @@ class OdometryGate:
 
     @property
     def enabled(self) -> bool:
-        return self.radius_m > 0
+        return self.config.radius_m > 0
 
     def on_odo(self, vtrans: float, vrot: float, dt: float) -> None:
         """Integrate one odometry sample (rotate, then advance; as the experience map does)."""
@@ -64,7 +56,7 @@ class OdometryGate:
 
     def allowed_m(self) -> float:
         """r(t): how far from the estimate a recognised place may lie now."""
-        return self.radius_m + self.drift * self.path_m
+        return self.config.radius_m + self.config.drift * self.path_m
 
     def check(self, template: int) -> bool:
         """Whether template ``template`` may reach the pose cells now. A new template is always

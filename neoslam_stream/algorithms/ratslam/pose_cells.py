@@ -1,35 +1,18 @@
-"""RatSLAM pose cells: a 3-D continuous attractor network (x, y, theta), as in OpenRatSLAM.
+"""RatSLAM pose cells: a 3-D continuous attractor network ``P[th, y, x]`` on a torus, as
+OpenRatSLAM's ``PosecellNetwork``.
 
-Per odometry message (``on_odo(vtrans, vrot, dt)``): excitation with a wrapped separable Gaussian
-(pc_w_e_dim, pc_w_e_var), inhibition of the excited activity (pc_w_i_dim, pc_w_i_var), global
-inhibition (pc_global_inhib), normalisation, path integration (translation by vtrans/pc_cell_x_size
-cells along each theta layer's direction, rotation along theta), then the best pose (population
-vector over the 7x7x7 window around the peak). Per view template (``on_view_template``): a new
-template remembers the current best pose; a known one injects pc_vt_inject_energy*(30-exp(1.2 d))/30
-at its pose, with d its decay (vt_active_decay, restored by pc_vt_restore). ``get_action`` then
-creates, links or sets experiences (exp_delta_pc_threshold), once both an odometry and a template
-update have arrived.
+``on_odo``: excitation (pc_w_e_dim, pc_w_e_var), inhibition of the excited activity (pc_w_i_dim,
+pc_w_i_var), global inhibition (pc_global_inhib), normalisation, path integration (vtrans /
+pc_cell_x_size cells along each theta layer's direction, dx = v sin(theta_k), dy = v cos(theta_k):
+pose-cell space mirrors the map frame; vrot along theta), then the best pose (population vector
+over the 7x7x7 window around the peak). ``on_view_template``: a new template stores the best pose;
+a known one injects pc_vt_inject_energy * (30 - exp(1.2 d)) / 30 there, d its decay
+(vt_active_decay, pc_vt_restore). ``get_action`` creates, links or sets experiences
+(exp_delta_pc_threshold) once both an odometry and a template update have arrived.
 
-The activity array is ``P[th, y, x]``. Pose-cell space is a mirror of the map frame: translation
-moves layer k by dx = v sin(theta_k), dy = v cos(theta_k) cells (as OpenRatSLAM).
-
-``openratslam_compat=True`` reproduces the C++ exactly, quirks included; the default fixes them:
-
-1. *Corner mass leak*: the C++ fold-back of the padded translation never adds two entries, so
-   mass wrapping through one corner of each layer is lost (0.05-0.12 % per step). Fixed: an exact,
-   mass-conserving bilinear shift on the torus.
-2. *Unsigned guard*: "the 10 newest templates do not inject" is off while fewer than 10 templates
-   exist (size_t wrap-round), so early templates inject immediately. Fixed: signed comparison, by
-   creation order rather than by id (ids from a front end may skip).
-3. *Truncated injection index*: the C++ casts the stored pose to int (MATLAB rounds) and silently
-   skips an index equal to N. Fixed: rounded and wrapped onto the torus.
-4. *No SET_NODE*: the C++ sends CREATE_EDGE even to an experience already linked to the current
-   one (its SET_NODE branch is dead). Fixed: SET_NODE when the link exists.
-5. *Stale relative rotation*: ``vt_delta_pc_th`` is only updated when a template injects, so a
-   panoramic rotation keeps biasing delta_pc and the actions' relative_rad afterwards. Fixed: it
-   follows the current view's relative_rad on every template message.
-
-Template ids that skip or repeat never crash: an unknown id is a new template wherever it falls.
+``openratslam_compat=True`` reproduces the C++ with its quirks; the default fixes five of them,
+marked "fix n" below and tabled in docs/ratslam.md. An unknown or skipped template id never
+crashes: it is a new template.
 """
 
 from __future__ import annotations
@@ -44,8 +27,6 @@ from scipy.ndimage import correlate1d
 from .._config import make_config
 from ..errors import InvalidInput
 from .actions import CREATE_EDGE, CREATE_NODE, NO_ACTION, SET_NODE  # noqa: F401 (used here and re-exported)
-from .odometry_bias import OdometryBiasConfig
-from .odometry_gate import OdometryGateConfig
 
 CELLS_TO_AVG = 3
 
@@ -68,12 +49,6 @@ class PoseCellConfig(BaseModel):
     exp_delta_pc_threshold: float = 2.0
     pc_vt_restore: float = 0.05
     openratslam_compat: bool = False
-    #: issue #14: templates whose place odometry cannot explain do not reach the network (used by
-    #: the pose-cell node, see odometry_gate.py; radius_m 0 = off, OpenRatSLAM)
-    odometry_gate: OdometryGateConfig = Field(default_factory=OdometryGateConfig)
-    #: issue #14: the odometry's yaw-rate bias estimated from loop closures and subtracted (used by
-    #: the pose-cell node, see odometry_bias.py; enabled false = off, OpenRatSLAM)
-    odometry_bias: OdometryBiasConfig = Field(default_factory=OdometryBiasConfig)
 
 
 def _wrapped_support(mask: np.ndarray, margin: int) -> np.ndarray | None:
@@ -109,15 +84,13 @@ class PoseCellNetwork:
     """
 
     def __init__(self, config: PoseCellConfig | None = None, **overrides: Any) -> None:
-        self.cfg = self.config = make_config(PoseCellConfig, config, overrides)
-        c = self.cfg
-        self.N, self.T = c.pc_dim_xy, c.pc_dim_th
-        self.C = 2 * math.pi / self.T
+        self.config = c = make_config(PoseCellConfig, config, overrides)
+        N, T = c.pc_dim_xy, c.pc_dim_th
         self.w_e = gaussian_1d(c.pc_w_e_dim, c.pc_w_e_var)
         self.w_i = gaussian_1d(c.pc_w_i_dim, c.pc_w_i_var)
-        self.P = np.zeros((self.T, self.N, self.N))
-        self.best = (float(self.N // 2), float(self.N // 2), float(self.T // 2))  # x, y, th
-        self.P[self.T // 2, self.N // 2, self.N // 2] = 1.0
+        self.P = np.zeros((T, N, N))
+        self.best = (float(N // 2), float(N // 2), float(T // 2))  # x, y, th
+        self.P[T // 2, N // 2, N // 2] = 1.0
         self.templates: dict[int, list[float]] = {}  # id -> [x, y, th, decay, creation rank]
         self.experiences: list[tuple[float, float, float, int]] = []  # x, y, th, vt
         self.template_exps: dict[int, list[int]] = {}
@@ -128,6 +101,11 @@ class PoseCellNetwork:
         self.vt_delta_pc_th = 0.0
         self.odo_update = False
         self.vt_update = False
+
+    @property
+    def C(self) -> float:
+        """The angle of one theta layer, 2 pi / pc_dim_th."""
+        return 2 * math.pi / self.config.pc_dim_th
 
     # ---------------------------------------------------------------- activity
     def _excite_inhibit(self) -> None:
@@ -140,7 +118,7 @@ class PoseCellNetwork:
         the full axis with wrap-around).
         """
         P = self.P
-        reach = self.cfg.pc_w_e_dim // 2 + self.cfg.pc_w_i_dim // 2
+        reach = self.config.pc_w_e_dim // 2 + self.config.pc_w_i_dim // 2
         active = P != 0
         idx = [_wrapped_support(active.any(axis=(1, 2)), reach),
                _wrapped_support(active.any(axis=(0, 2)), reach),
@@ -158,7 +136,7 @@ class PoseCellNetwork:
         for ax in range(3):
             inh = correlate1d(inh, self.w_i, axis=ax, mode=modes[ax])
         sub = sub - inh
-        g = self.cfg.pc_global_inhib
+        g = self.config.pc_global_inhib
         sub = np.where(sub >= g, sub - g, 0.0)
         total = sub.sum()
         if not total > 0:
@@ -171,9 +149,9 @@ class PoseCellNetwork:
             self.P[box] = sub
 
     def _translate_compat(self, v: float, base: float) -> None:
-        N = self.N
+        T, N = self.config.pc_dim_th, self.config.pc_dim_xy
         out = np.zeros_like(self.P)
-        for k in np.flatnonzero(self.P.reshape(self.T, -1).any(axis=1)):  # empty layers stay empty
+        for k in np.flatnonzero(self.P.reshape(T, -1).any(axis=1)):  # empty layers stay empty
             direction = k * self.C + base
             q = int(math.floor(direction * 2 / math.pi))
             layer = np.rot90(self.P[k], -q)
@@ -193,13 +171,14 @@ class PoseCellNetwork:
         self.P = out
 
     def _translate_exact(self, v: float, base: float) -> None:
-        """Mass-conserving bilinear shift of every theta layer on the torus, vectorised.
+        """Fix 1: a mass-conserving bilinear shift of every theta layer on the torus (the C++'s
+        fold-back of the padded shift loses what wraps through one corner), vectorised.
 
         Layers are grouped by their integer shift (at most four groups for v <= 1) so each group
         is shifted by four rolls of a 3-D block; empty layers (most of them) are skipped.
         """
         P = self.P
-        ks = np.flatnonzero(P.reshape(self.T, -1).any(axis=1))
+        ks = np.flatnonzero(P.reshape(self.config.pc_dim_th, -1).any(axis=1))
         th = ks * self.C + base
         dx, dy = v * np.sin(th), v * np.cos(th)
         ix, iy = np.floor(dx).astype(int), np.floor(dy).astype(int)
@@ -226,12 +205,12 @@ class PoseCellNetwork:
         self.P = (1 - w) * np.roll(self.P, s1, axis=0) + w * np.roll(self.P, s2, axis=0)
 
     def _path_integration(self, vtrans: float, vrot: float) -> None:
-        v = vtrans / self.cfg.pc_cell_x_size
+        v = vtrans / self.config.pc_cell_x_size
         base = 0.0
         if v < 0:
             v, base = -v, math.pi
         if v != 0:
-            if self.cfg.openratslam_compat:
+            if self.config.openratslam_compat:
                 self._translate_compat(v, base)
             else:
                 self._translate_exact(v, base)
@@ -239,7 +218,7 @@ class PoseCellNetwork:
             self._rotate(vrot)
 
     def _find_best(self) -> None:
-        T, N = self.T, self.N
+        T, N = self.config.pc_dim_th, self.config.pc_dim_xy
         k, j, i = np.unravel_index(int(np.argmax(self.P)), self.P.shape)
         r = np.arange(-CELLS_TO_AVG, CELLS_TO_AVG + 1)
         ks, js, is_ = (k + r) % T, (j + r) % N, (i + r) % N
@@ -280,7 +259,8 @@ class PoseCellNetwork:
         pose, theta shifted by rad/(2 pi)*pc_dim_th; its decay grows by vt_active_decay while it
         stays current. Every template's decay then relaxes by pc_vt_restore (floor vt_active_decay).
         """
-        c = self.cfg
+        c = self.config
+        N, T = c.pc_dim_xy, c.pc_dim_th
         vt = int(vt)
         if vt < 0:
             raise InvalidInput(f"template id must be >= 0, got {vt}")
@@ -289,7 +269,7 @@ class PoseCellNetwork:
         if not c.openratslam_compat:
             # fix 5: the C++ only updates vt_delta_pc_th when injecting, so a stale rotation
             # leaks into delta_pc and into later actions' relative_rad
-            self.vt_delta_pc_th = rad / (2 * math.pi) * self.T
+            self.vt_delta_pc_th = rad / (2 * math.pi) * T
         if vt not in self.templates:
             self.templates[vt] = [self.best[0], self.best[1], self.best[2], c.vt_active_decay,
                                   float(len(self.templates))]
@@ -299,25 +279,25 @@ class PoseCellNetwork:
             if c.openratslam_compat:
                 guard = size < 10 or vt < size - 10  # size_t wrap-round: no guard below 10 templates
             else:
-                guard = t[4] < size - 10  # by creation order, so that skipped ids do not matter
+                guard = t[4] < size - 10  # fix 2: signed, by creation order (ids may skip)
             if guard:
                 if vt == self.current_vt:
                     t[3] += c.vt_active_decay
                 # operation order as the C++, so that compat mode agrees to the last bit
                 energy = c.pc_vt_inject_energy * 1.0 / 30.0 * (30.0 - math.exp(1.2 * t[3]))
                 if energy > 0:
-                    self.vt_delta_pc_th = rad / (2 * math.pi) * self.T
+                    self.vt_delta_pc_th = rad / (2 * math.pi) * T
                     th_c = t[2] + self.vt_delta_pc_th
                     if th_c < 0:
-                        th_c += self.T
-                    if th_c >= self.T:
-                        th_c -= self.T
+                        th_c += T
+                    if th_c >= T:
+                        th_c -= T
                     if c.openratslam_compat:
                         ix, iy, ik = int(t[0]), int(t[1]), int(th_c)
-                        if 0 <= ix < self.N and 0 <= iy < self.N and 0 <= ik < self.T:
+                        if 0 <= ix < N and 0 <= iy < N and 0 <= ik < T:
                             self.P[ik, iy, ix] += energy
-                    else:
-                        ix, iy, ik = round(t[0]) % self.N, round(t[1]) % self.N, round(th_c) % self.T
+                    else:  # fix 3: rounded and wrapped (the C++ truncates and skips an index of N)
+                        ix, iy, ik = round(t[0]) % N, round(t[1]) % N, round(th_c) % T
                         self.P[ik, iy, ix] += energy
         for t in self.templates.values():
             t[3] = max(c.vt_active_decay, t[3] - c.pc_vt_restore)
@@ -335,7 +315,8 @@ class PoseCellNetwork:
             d = abs(a - b)
             return min(d, n - d)
 
-        return math.sqrt(circ(x, ex, self.N) ** 2 + circ(y, ey, self.N) ** 2 + circ(th, eth, self.T) ** 2)
+        N, T = self.config.pc_dim_xy, self.config.pc_dim_th
+        return math.sqrt(circ(x, ex, N) ** 2 + circ(y, ey, N) ** 2 + circ(th, eth, T) ** 2)
 
     def _create_experience(self) -> int:
         self.experiences.append((self.best[0], self.best[1], self.best[2], self.current_vt))
@@ -350,7 +331,7 @@ class PoseCellNetwork:
         if self.odo_update and self.vt_update:
             self.odo_update = self.vt_update = False
             if self.templates:
-                thr = self.cfg.exp_delta_pc_threshold
+                thr = self.config.exp_delta_pc_threshold
                 if not self.experiences or not self.template_exps.get(self.current_vt):
                     new = self._create_experience()
                     if self.experiences and len(self.experiences) > 1:
@@ -367,7 +348,8 @@ class PoseCellNetwork:
                             best_e, best_d = e, d
                     if best_e >= 0 and best_d < thr:
                         linked = (src, best_e) in self.links or (best_e, src) in self.links
-                        action = SET_NODE if (linked and not self.cfg.openratslam_compat) else CREATE_EDGE
+                        # fix 4: SET_NODE when the link exists (the C++'s SET_NODE branch is dead)
+                        action = SET_NODE if (linked and not self.config.openratslam_compat) else CREATE_EDGE
                         self.links.add((src, best_e))
                         self.current_exp = best_e
                     else:
@@ -375,10 +357,11 @@ class PoseCellNetwork:
                         self.links.add((src, new))
                         self.current_exp = new
                         action = CREATE_NODE
-        return action, src, self.current_exp, self.vt_delta_pc_th * 2 * math.pi / self.T
+        return action, src, self.current_exp, self.vt_delta_pc_th * 2 * math.pi / self.config.pc_dim_th
 
     # ---------------------------------------------------------------- state
     def state_dict(self) -> dict[str, Any]:
+        """The network's state; the activity's shape records pc_dim_th and pc_dim_xy."""
         return {"P": self.P.copy(), "best": list(self.best),
                 "templates": {str(k): v for k, v in self.templates.items()},
                 "experiences": [list(e) for e in self.experiences],
@@ -388,7 +371,16 @@ class PoseCellNetwork:
                             int(self.odo_update), int(self.vt_update)]}
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
-        self.P = np.array(st["P"], dtype=float)
+        """Restore :meth:`state_dict`; a checkpoint of another network size is refused (ValueError)."""
+        P = np.array(st["P"], dtype=float)
+        c = self.config
+        if P.ndim != 3:
+            raise ValueError(f"checkpoint's pose-cell activity has shape {P.shape}, expected (th, y, x)")
+        for field, got, want in (("pc_dim_th", P.shape[0], c.pc_dim_th), ("pc_dim_xy", P.shape[1], c.pc_dim_xy),
+                                 ("pc_dim_xy", P.shape[2], c.pc_dim_xy)):
+            if got != want:
+                raise ValueError(f"{field}: the checkpoint's is {got}, the config's {want}")
+        self.P = P
         self.best = tuple(float(v) for v in st["best"])
         self.templates = {int(k): [float(x) for x in v] for k, v in st["templates"].items()}
         self.experiences = [(float(e[0]), float(e[1]), float(e[2]), int(e[3])) for e in st["experiences"]]

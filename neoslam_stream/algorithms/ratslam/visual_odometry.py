@@ -1,22 +1,16 @@
-"""RatSLAM visual odometry (OpenRatSLAM's scanline intensity profiles).
+"""RatSLAM visual odometry (OpenRatSLAM's ``VisualOdometry``): rates from scanline intensity profiles.
 
-Two profiles per image, the column means of grey levels (/255) over a translation window and a
-rotation window. Each is compared with the previous frame's over shifts of up to ``slen`` = 40
-columns in both directions (mean absolute difference over the overlap); the best shift of the
-rotation profile gives ``vrot = shift * camera_fov_deg / image_width * camera_hz`` (deg -> rad/s),
-the best difference of the translation profile gives ``vtrans = min(diff * vtrans_scaling,
-vtrans_max)``. A positive shift (the scene moved right) is a left (counter-clockwise) turn.
-The first frame only stores its profiles (OpenRatSLAM's consumers ignore its value).
+Per image two profiles, the column means of grey levels (/255; colour channels summed and divided
+by 3*255, as the C++) over the translation and the rotation windows, are compared with the previous
+frame's over shifts of up to ``SLEN`` = 40 columns in the C++'s order (0..-39, then 0..39; only a
+strictly smaller mean absolute difference wins). The rotation profile's best shift gives vrot =
+shift * camera_fov_deg / width * camera_hz (deg -> rad/s; a positive shift, the scene moving right,
+is a left turn), the translation profile's best difference vtrans = min(diff * vtrans_scaling,
+vtrans_max). The first frame only stores its profiles.
 
-Both shift searches follow the C++ order (negative shifts 0..-39 first, then positive 0..39, a
-strictly smaller difference wins), so ties resolve as in OpenRatSLAM. Colour frames: the C++ sums
-the three channels (divides by 3*255).
-
-``openratslam_compat=True`` converts the per-frame measurements to rates with the nominal
-``camera_hz``, as the C++ does. The default uses the real time since the previous frame when the
-caller gives it (``dt``): the measured column shift is the rotation between the two frames that
-were compared, so when a frame is dropped or the camera is not exactly at camera_hz the C++'s
-vrot * dt is wrong by the ratio of the two intervals, and so is vtrans * dt.
+``openratslam_compat=True`` turns the per-frame measurements into rates with the nominal
+``camera_hz``, as the C++; the default divides by the real interval ``dt`` between the two frames
+compared when the caller gives it (after a dropped frame the C++'s rates are off by that ratio).
 """
 
 from __future__ import annotations
@@ -91,7 +85,7 @@ class VisualOdometry:
     """OpenRatSLAM's ``VisualOdometry``: (vtrans m/s, vrot rad/s) per image from two scanlines."""
 
     def __init__(self, config: VisualOdometryConfig | None = None, **overrides: Any) -> None:
-        self.cfg = self.config = make_config(VisualOdometryConfig, config, overrides)
+        self.config = make_config(VisualOdometryConfig, config, overrides)
         self.prev_trans: np.ndarray | None = None
         self.prev_rot: np.ndarray | None = None
 
@@ -101,7 +95,7 @@ class VisualOdometry:
         ``img`` is HxW grey or HxWxC colour (0..255); ``dt`` the seconds since the previous frame
         (used in the default mode to turn the per-frame shift into rates; None: 1/camera_hz).
         """
-        c = self.cfg
+        c = self.config
         g = np.asarray(img)
         if g.ndim not in (2, 3):
             raise InvalidInput(f"expected a grey (HxW) or colour (HxWxC) image, got shape {g.shape}")

@@ -1,12 +1,15 @@
-"""The TU Chemnitz corridor run through pose cells + experience map (used by bench/ratslam.py and tests).
+"""The TU Chemnitz corridor run through the back end's pose cells and experience map.
 
-Wheel odometry (10 Hz: forward speed vx and turn rate wz, as RatSLAM uses them) drives the pose
-cells and the experience map. Visual templates come from the run's loop-closure candidates: every
+Wheel odometry (10 Hz: forward speed vx and turn rate wz, as RatSLAM uses them) drives the
+:class:`~neoslam_stream.algorithms.backend.PoseCellStage` (yaw-rate bias, odometry gate, pose
+cells) and the experience map. Visual templates come from the run's loop-closure candidates: every
 time stamp that appears in a candidate is a camera frame; a frame whose best candidate with an
 earlier frame (at least ``min_gap_s`` earlier, similarity >= ``threshold``) exists reuses that
 frame's template id (a place recognised), otherwise it gets a new id. The error of the
 experience-map trajectory and of odometry alone is measured against the 2-D ground truth after
-the same rigid 2-D alignment (rotation + translation, least squares) of each.
+the same rigid 2-D alignment (rotation + translation, least squares) of each. Settings:
+bench/settings/tuc.yaml and tuc_paper.yaml. Used by bench/ratslam.py, bench/maps.py and
+tests/test_ratslam_tuc.py.
 """
 
 from __future__ import annotations
@@ -14,35 +17,21 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from bench_settings import data_root
 
-from ..evaluation import best_rotation_2d
-from . import data_root
+from neoslam_stream.algorithms.backend import PoseCellStage, integrate
+from neoslam_stream.algorithms.ratslam.experience_map import ExperienceMap, poses_on_map
+from neoslam_stream.algorithms.sequence import SequenceFilter
+from neoslam_stream.evaluation import best_rotation_2d
 
 DATA = data_root() / "tuc_slam_odom_loops"
 
-#: the corridor's settings before issue #14's levers (OpenRatSLAM's back end on the candidates):
-#: the "paper" column of the TUC figures
-TUC_PAPER_SETTINGS = dict(pc=dict(pc_dim_xy=30, pc_cell_x_size=1.0, exp_delta_pc_threshold=2.0),
-                          em=dict(exp_loops=20, exp_initial_em_deg=0), threshold=0.6, min_gap_s=30.0)
-
-#: the settings of the TUC figures (bench/ratslam.py, tests/test_ratslam_tuc.py): the paper
-#: settings plus the yaw-rate bias estimated from every recognition, modulo half a turn (this
-#: front end recognises the corridor in both directions), and the odometry gate that the
-#: bias-corrected odometry makes reliable (20 m + 0.1 m per metre driven: the look-alikes lie
-#: ~86 m away); each is needed (docs/mapping.md, "TUC corridor")
-TUC_SETTINGS = dict(
-    TUC_PAPER_SETTINGS,
-    pc=dict(TUC_PAPER_SETTINGS["pc"],
-            odometry_bias=dict(enabled=True, samples_from="templates", bidirectional=True),
-            odometry_gate=dict(radius_m=20.0, drift=0.1)))
-
 
 def load_ground_truth(path=None) -> np.ndarray:
-    """(n, 3) rows (t, x, y) of the ``point2`` records only.
+    """(n, 3) rows (t, x, y) of the ``point2`` records only, sorted by time.
 
     The GT file interleaves ``point2 t x y ...`` (positions, metres) with ``angle t heading 0``
-    records; reading every row as a position mixed (t, heading, 0) into the trajectory, so the
-    figures were not trajectory errors (issue #14). Rows are sorted by time.
+    records (headings, not positions).
     """
     rows = []
     for line in open(path or DATA / "Corridor_GT.txt"):
@@ -54,6 +43,7 @@ def load_ground_truth(path=None) -> np.ndarray:
 
 
 def load(limit_s: float | None = None):
+    """Odometry rows (t, vx, wz), loop candidates (t1, t2, similarity) and ground truth (t, x, y)."""
     odom, loops = [], []
     for line in open(DATA / "Corridor_Input.txt"):
         p = line.split()
@@ -78,8 +68,6 @@ def templates_from_loops(loops: np.ndarray, threshold: float, min_gap_s: float,
     """time -> template id, in time order. ``sequence``: the parameters of a
     :class:`~neoslam_stream.algorithms.sequence.SequenceFilter` over frame indices (a recognised
     frame must continue a run of consistent recognitions), as stage D's ``sequence`` setting."""
-    from ..algorithms.sequence import SequenceFilter
-
     seq = SequenceFilter(**(sequence or {}))
     frames = np.unique(np.concatenate([loops[:, 0], loops[:, 1]]))
     best: dict[float, tuple[float, float]] = {}
@@ -120,30 +108,22 @@ def align_rigid_2d(est: np.ndarray, ref: np.ndarray) -> np.ndarray:
     return (est - mu_e) @ best_rotation_2d(est - mu_e, ref - mu_r).T + mu_r
 
 
-def run(pc_params: dict, em_params: dict, threshold: float = 0.8, min_gap_s: float = 60.0,
+def run(pose_cells: dict, experience_map: dict, threshold: float = 0.8, min_gap_s: float = 60.0,
         limit_s: float | None = None, sequence: dict | None = None) -> dict:
-    """The corridor run through pose cells + experience map. ``pc_params`` may hold an
-    ``odometry_gate`` (OdometryGate's parameters: recognitions odometry cannot explain do not
-    reach the pose cells, as in the pose-cell node) and an ``odometry_bias`` (the yaw-rate bias
-    estimated from loop closures and subtracted, as in the pose-cell node); ``sequence``: see
-    templates_from_loops. ``map_on_final_mean_m``: the error of every step re-expressed on the
-    final map (as trajectory_map.tum)."""
-    from ..algorithms.ratslam.experience_map import ExperienceMap, poses_on_map
-    from ..algorithms.ratslam.odometry_bias import YawBiasEstimator
-    from ..algorithms.ratslam.odometry_gate import OdometryGate
-    from ..algorithms.ratslam.pose_cells import PoseCellNetwork
-
+    """The corridor run through the pose-cell stage (``pose_cells``: that config section, with its
+    ``odometry_gate`` and ``odometry_bias``) and an experience map (``experience_map``); the
+    templates that arrive between two odometry steps reach the stage first, as in a run.
+    ``sequence``: see :func:`templates_from_loops`. ``map_on_final_mean_m``: the error of every
+    step re-expressed on the final map (as trajectory_map.tum)."""
     odom, loops, gt = load(limit_s)
     ids = templates_from_loops(loops, threshold, min_gap_s, sequence)
     frame_times = np.array(sorted(ids))
-    pc = PoseCellNetwork(**pc_params)
-    em = ExperienceMap(**em_params)
-    gate = OdometryGate(pc.cfg.odometry_gate)
-    bias = YawBiasEstimator(pc.cfg.odometry_bias)
+    stage = PoseCellStage(pose_cells)
+    em = ExperienceMap(experience_map)
     fi = 0
     est, dr, local = [], [], []
     x = y = 0.0
-    th = math.radians(em.cfg.exp_initial_em_deg)
+    th = math.radians(em.config.exp_initial_em_deg)
     prev_t = odom[0, 0]
     recognised = 0
     for t, vx, wz in odom:
@@ -151,22 +131,13 @@ def run(pc_params: dict, em_params: dict, threshold: float = 0.8, min_gap_s: flo
         prev_t = t
         while fi < len(frame_times) and frame_times[fi] <= t:
             vt = ids[frame_times[fi]]
-            bias.on_template(vt)
-            if gate.check(vt):
-                recognised += int(vt in pc.templates)
-                pc.on_view_template(vt, 0.0)
+            known = vt in stage.network.templates
+            if stage.on_template(vt, 0.0):  # it reached the pose cells: a place recognised if known
+                recognised += int(known)
             fi += 1
-        wc = bias.correct(wz, dt)
-        pc.on_odo(vx, wc, dt)
-        gate.on_odo(vx, wc, dt)
-        em.on_odo(vx, wc, dt)
-        a, s, d, rr = pc.get_action()
-        bias.on_action(a, d, rr)
-        if a:
-            em.on_action(a, s, d, rr, t)
-        px, py, _ = em.robot_pose()
-        est.append((t, px, py))
-        local.append(em.local_pose())
+        p = integrate(em, stage.on_odometry(vx, wz, dt, t), t)
+        est.append((t, p.pose[0], p.pose[1]))
+        local.append((p.exp_id, *p.local))
         th += wz * dt
         x += vx * dt * math.cos(th)
         y += vx * dt * math.sin(th)
@@ -180,8 +151,10 @@ def run(pc_params: dict, em_params: dict, threshold: float = 0.8, min_gap_s: flo
     loc = np.array(local, dtype=np.float64).reshape(-1, 4)
     on_map = poses_on_map(nodes, loc[:, 0].astype(np.int64), loc[:, 1:])[:, :2]
     err_on_map = np.linalg.norm(align_rigid_2d(on_map, ref) - ref, axis=1)
+    bias = stage.bias
     return {"steps": len(odom), "frames": len(frame_times), "templates": len(set(ids.values())),
-            "recognised_frames": recognised, "gate_refused": gate.refused, "experiences": em.n_experiences, "links": len(em.links),
+            "recognised_frames": recognised, "gate_refused": stage.gate.refused,
+            "experiences": em.n_experiences, "links": len(em.links),
             "map_mean_m": float(err_map.mean()), "map_max_m": float(err_map.max()),
             "map_on_final_mean_m": float(err_on_map.mean()), "yaw_bias_rad_s": float(bias.bias),
             "yaw_bias_samples": bias.samples,

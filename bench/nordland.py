@@ -1,24 +1,16 @@
 """Nordland summer -> winter through A, B, C and D: loop-closure precision and recall.
 
-Used by bench/frontend.py and tests/test_frontend_nordland.py. Summer frames are streamed first,
-then winter frames, as one sequence through the algorithms of A, B, C and D (features ->
-bits -> winner cells -> template), A and B eight frames at a time as their nodes batch them in a
-lossless run; A, B and C run once and D once per parameter set; the seasons are frame-aligned, so winter frame i
-shows the place of summer frame i. A winter frame's loop closure is correct when the template it
-matched was created within +-``tolerance`` source frames of that place during the summer pass.
-Recall = correct closures / winter frames.
-
-Protocol choices (documented in docs/frontend.md):
-
-* ``step``: every step-th thumbnail (the thumbnails are already every 10th source frame).
-* ``min_std``: places where either season's frame is featureless (grey-level standard deviation
-  below ``min_std``, i.e. tunnels and night-dark frames) are left out of *both* passes, as the usual
-  Nordland protocol leaves out tunnels: all tunnels look alike, and any appearance-based matcher
-  confuses them (they were most of the wrong high-score matches).
-* ``theta_sigma=None`` in a parameter set: calibrated on the summer pass alone as the
-  ``quantile``-th percentile of the sLSBH overlaps between summer frames more than ``tolerance``
-  source frames apart (a false-match rate of 1 - quantile/100 on the reference season; no winter
-  frame is looked at).
+Summer frames, then winter frames, stream as one sequence through the stages of a
+:class:`~neoslam_stream.algorithms.frontend.FrontEnd` (A and B eight frames at a time, as their
+nodes batch them in a lossless run); A, B and C run once, D once per parameter set. The seasons
+are frame-aligned: winter frame i shows summer frame i's place. A winter closure is correct when
+the template it matched was created within +-``tolerance`` source frames of that place during the
+summer pass; recall = correct closures / winter frames. Protocol (docs/frontend.md): every
+``step``-th thumbnail; places where either season's frame is featureless (grey-level std below
+``min_std``: tunnels, night) left out of both passes; ``theta_sigma`` None in a parameter set:
+calibrated on the summer pass alone (a percentile of the overlaps between summer frames more than
+``tolerance`` apart). The settings of the precision target: bench/settings/nordland.yaml.
+Used by bench/frontend.py, bench/maps.py and tests/test_frontend_nordland.py.
 """
 
 from __future__ import annotations
@@ -28,10 +20,27 @@ from typing import Any
 
 import cv2
 import numpy as np
+from bench_settings import data_root, load_settings
 
-from . import data_root
+from neoslam_stream.algorithms.frontend import FrontEnd
 
 DATA = data_root() / "nordland_64x32"
+
+
+def map_settings() -> dict[str, Any]:
+    """bench/settings/nordland.yaml as the protocol runs it: B's ``centre_window`` and D's
+    parameter set ``spatial_view`` with the deferred keys that :func:`resolve_params` resolves."""
+    s = load_settings("nordland")
+    p = s["protocol"]
+    sv = to_calibrate(s["spatial_view"], calibration_quantile=p["theta_sigma_quantile"],
+                      min_gap_fraction=p["min_gap_fraction"])
+    return {"centre_window": s["projector"]["centre_window"], "spatial_view": sv}
+
+
+def to_calibrate(params: dict, **deferred: Any) -> dict:
+    """D's parameter set ``params`` (a spatial_view section) with theta_sigma left to the
+    calibration unless it sets one, and the ``deferred`` keys of :func:`resolve_params`."""
+    return {"theta_sigma": None, **deferred, **params}
 
 
 def load_frames(step: int, limit: int | None = None, min_std: float | None = None,
@@ -96,21 +105,6 @@ def evaluate(template_ids: list[int], loops: list[bool], source_ids: list[int], 
             "recall": correct / n_winter if n_winter else 0.0}
 
 
-#: issue #14: how the stream reaches precision >= 0.9 at recall >= 0.2 (docs/mapping.md). B centres
-#: the features over 30 frames; D ranks the intervals by the union-normalised score, needs a margin
-#: of 5 over the runner-up and one consistent previous frame, and searches only places seen at least
-#: 95 % of a traversal ago (``min_gap_fraction``: the database without the current traversal);
-#: theta_sigma is the 98th percentile of the overlaps between summer frames of different places.
-#: Chosen on the validation subset (``offset`` 4: other thumbnails of the same route), measured on
-#: the test protocol's subset (offset 0) by ``bench/maps.py --nordland-target``.
-MAP_SETTINGS: dict[str, Any] = {
-    "centre_window": 30,
-    "spatial_view": {"theta_alpha": 384, "theta_rho": 3, "exclude_recent_intervals": 3, "theta_sigma": None,
-                     "calibration_quantile": 98.0, "min_gap_fraction": 0.95, "union_normalised": True,
-                     "theta_margin": 5.0, "sequence": {"length": 1, "max_step": 2.0, "slack": 4}},
-}
-
-
 def resolve_params(params: dict, bits: list[np.ndarray], ids: list[int], n: int, tolerance: int,
                    quantile: float, calibrated: dict[float, int] | None = None) -> dict:
     """D's parameters of one set with the protocol's two deferred keys resolved: theta_sigma None
@@ -131,19 +125,18 @@ def resolve_params(params: dict, bits: list[np.ndarray], ids: list[int], n: int,
 
 def spatial_view_runs(bits: list[np.ndarray], sdrs: list[np.ndarray], ids: list[int], n: int,
                       svc_params: list[dict], tolerance: int = 150, quantile: float = 99.9):
-    """D once per parameter set over one stream (the ``n`` summer frames, then winter): yields
-    (parameters, the SpatialViewCells, its outputs, :func:`evaluate`'s result, the theta_sigma
-    calibrated at ``quantile``). A set's deferred keys are resolved by :func:`resolve_params`."""
-    from ..algorithms.spatial_view import SpatialViewCells
-
+    """D once per parameter set over one stream (the ``n`` summer frames, then winter), each in a
+    front end of its own handed C's cells: yields (parameters, its SpatialViewCells, its templates,
+    :func:`evaluate`'s result, the theta_sigma calibrated at ``quantile``). A set's deferred keys are
+    resolved by :func:`resolve_params`."""
     cache: dict[float, int] = {}
     calibrated = resolve_params({"theta_sigma": None}, bits, ids, n, tolerance, quantile, cache)["theta_sigma"]
     for params in svc_params:
         params = resolve_params(params, bits, ids, n, tolerance, quantile, cache)
-        d = SpatialViewCells(**params)
-        out = [d.compute(c.astype(np.uint32)) for c in sdrs]
+        fe = FrontEnd(spatial_view=params)
+        out = [fe.template(c.astype(np.uint32)) for c in sdrs]
         res = evaluate([int(m["id"]) for m in out], [bool(m["is_loop_closure"]) for m in out], ids, n, tolerance)
-        yield params, d, out, res, calibrated
+        yield params, fe.spatial_view, out, res, calibrated
 
 
 @lru_cache(maxsize=1)
@@ -152,28 +145,22 @@ def stream_features(backbone: str, step: int, limit: int | None = None, min_std:
     """A's features of the summer then winter frames (8 at a time, as its node batches them), the
     places' source frame numbers, the number of summer frames and the backbone that ran. The last
     stream is kept (up to 0.2 GB): several B settings over one stream run A once."""
-    from ..algorithms.features import VisualFeatureExtractor
-
     summer, winter, ids = load_frames(step, limit, min_std, offset)
-    fa = VisualFeatureExtractor(backbone=backbone, seed=seed, threads=1)
+    fe = FrontEnd(features={"backbone": backbone, "seed": seed})
     frames = summer + winter
-    feats = np.concatenate([fa.extract_batch(frames[k:k + 8]) for k in range(0, len(frames), 8)])
+    feats = np.concatenate([fe.features(frames[k:k + 8]) for k in range(0, len(frames), 8)])
     feats.setflags(write=False)
-    return feats, tuple(ids), len(summer), fa.backbone
+    return feats, tuple(ids), len(summer), fe.extractor.backbone
 
 
-def stream_codes(features: np.ndarray, cells_of: Any, **projector: Any) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    """B's bits and C's cells of every frame: A's ``features`` through a
-    :class:`~neoslam_stream.algorithms.projector.BinaryProjector` (``projector``: its parameters
-    besides the input size) 8 frames at a time, as B's node batches them, each frame's bits then
-    through ``cells_of`` (C)."""
-    from ..algorithms.projector import BinaryProjector
-
-    pb = BinaryProjector(input_dim=features.shape[1], **projector)
+def stream_codes(features: np.ndarray, fe: FrontEnd, cells_of: Any = None) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """B's bits and C's cells of every frame: A's ``features`` through ``fe``'s B 8 frames at a
+    time, as B's node batches them, each frame's bits then through ``fe``'s C (or ``cells_of``)."""
+    cells_of = cells_of or fe.cells
     bits: list[np.ndarray] = []
     sdrs: list[np.ndarray] = []
     for k in range(0, len(features), 8):
-        for b in pb.bits_batch(features[k:k + 8]):
+        for b in fe.bits(features[k:k + 8]):
             bits.append(b)
             sdrs.append(cells_of(b))
     return bits, sdrs
@@ -189,10 +176,12 @@ def run_frontend(backbone: str, step: int, svc_params: list[dict], tolerance: in
     :class:`~neoslam_stream.algorithms.neocortex.Neocortex` with its defaults), a dict of Neocortex
     parameters, or a callable bits -> cells. ``offset``: see :func:`load_frames`.
     """
-    from ..algorithms.neocortex import Neocortex, NeocortexConfig
-
     features, ids_t, n, backbone_ran = stream_features(backbone, step, limit, min_std, offset, seed)
     ids = list(ids_t)
+    nc = neocortex if isinstance(neocortex, dict) else {}
+    fe = FrontEnd(features={"backbone": backbone_ran, "seed": seed}, neocortex=nc,
+                  projector={"projection": projection, "seed": seed, "centre_window": centre_window})
+    cells_of = None
     if isinstance(neocortex, str) and neocortex == "passthrough":
         cells_of = passthrough_neocortex
         nc_name = "passthrough (cell 0 of each active column)"
@@ -201,10 +190,8 @@ def run_frontend(backbone: str, step: int, svc_params: list[dict], tolerance: in
             return np.asarray(neocortex(bits))
         nc_name = getattr(neocortex, "__name__", "callable")
     else:
-        nc = Neocortex(NeocortexConfig(**(neocortex if isinstance(neocortex, dict) else {})))
-        nc_name = f"neocortex (tie_break {nc.config.tie_break})"
-        cells_of = nc.compute
-    bits, sdrs = stream_codes(features, cells_of, projection=projection, seed=seed, centre_window=centre_window)
+        nc_name = f"neocortex (tie_break {fe.config.neocortex.tie_break})"
+    bits, sdrs = stream_codes(features, fe, cells_of)
     results = []
     for params, d, out, res, calibrated in spatial_view_runs(bits, sdrs, ids, n, svc_params, tolerance, quantile):
         template_ids = [int(m["id"]) for m in out]

@@ -1,0 +1,51 @@
+"""Where the benches find their inputs: the data sets and the settings files in bench/settings/.
+
+The data sets are not shipped: they lie in ``$NEOSLAM_DATA`` or, in a clone of the repository, in
+``../shared/data`` next to it (that folder's README gives sources and licences). A settings file
+holds sections of a run's config (``spatial_view``, ``pose_cells`` ...), validated by the run
+config's models so that a misspelt key fails, plus a ``protocol`` section for what the bench's
+protocol decides itself (thresholds, what it resolves from the data).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from neoslam_stream.config import ConfigError, load_config
+
+SETTINGS = Path(__file__).resolve().parent / "settings"
+
+
+def data_root() -> Path:
+    """``$NEOSLAM_DATA``, else ``<repository>/../shared/data``."""
+    env = os.environ.get("NEOSLAM_DATA")
+    if env:
+        return Path(env)
+    return Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+def check_sections(sections: dict[str, Any], origin: str) -> dict[str, Any]:
+    """``sections`` (config sections, as in a run's YAML) unchanged once the run config's models
+    accept them; otherwise a :class:`ConfigError` naming ``origin`` and the field."""
+    try:
+        load_config(None, sections)
+    except ConfigError as exc:
+        raise ConfigError(f"{origin}: {exc}") from None
+    return sections
+
+
+def read_settings(name: str) -> dict[str, Any]:
+    """bench/settings/``name``.yaml as a dict, unchecked."""
+    return yaml.safe_load((SETTINGS / f"{name}.yaml").read_text()) or {}
+
+
+def load_settings(name: str) -> dict[str, Any]:
+    """bench/settings/``name``.yaml as a dict; its sections other than ``protocol`` checked by
+    :func:`check_sections`."""
+    data = read_settings(name)
+    check_sections({k: v for k, v in data.items() if k != "protocol"}, f"bench/settings/{name}.yaml")
+    return data

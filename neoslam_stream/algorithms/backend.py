@@ -1,0 +1,183 @@
+"""The RatSLAM back end as one core: what corrects the odometry, the pose cells, the experience map.
+
+Per camera frame it takes the front end's visual template (when the frame has one) and the
+odometry since the previous frame, in OpenRatSLAM's order: the template first, then the odometry,
+whose pose-cell update yields one action for the experience map. Before the pose cells the yaw-rate
+bias estimator corrects the odometry and the odometry gate may refuse a recognised place that
+dead reckoning cannot explain. :class:`PoseCellStage` is the part the pose-cell process hosts,
+:class:`ExperienceMap` with :func:`integrate` the part the map's process hosts; :class:`BackEnd`
+composes both for the in-process API and the benches.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from ._config import make_config
+from .errors import InvalidInput
+from .ratslam.experience_map import ExperienceMap, ExperienceMapConfig
+from .ratslam.odometry_bias import OdometryBiasConfig, YawBiasEstimator
+from .ratslam.odometry_gate import OdometryGate, OdometryGateConfig
+from .ratslam.pose_cells import PoseCellConfig, PoseCellNetwork
+from .ratslam.visual_odometry import VisualOdometry, VisualOdometryConfig
+
+
+class PoseCellStageConfig(PoseCellConfig):
+    """The ``pose_cells`` section: the network's parameters plus what corrects its input."""
+
+    #: refuse recognitions that dead reckoning cannot explain (radius_m 0: off)
+    odometry_gate: OdometryGateConfig = Field(default_factory=OdometryGateConfig)
+    #: subtract the odometry's yaw-rate bias, estimated from loop closures (enabled false: off)
+    odometry_bias: OdometryBiasConfig = Field(default_factory=OdometryBiasConfig)
+
+
+@dataclass
+class Action:
+    """One pose-cell update: the experience-map action (0 none, 1 new node, 2 edge, 3 set node),
+    its source and destination experiences, and the odometry it integrated (vrot corrected)."""
+
+    action: int
+    src_id: int
+    dst_id: int
+    relative_rad: float
+    vtrans: float
+    vrot: float
+    dt: float
+
+
+@dataclass
+class MapPose:
+    """The experience map's pose of the robot (x, y, theta), its experience and the pose in that
+    experience's frame (dx, dy, dtheta), from which the final map re-expresses it."""
+
+    pose: np.ndarray
+    exp_id: int
+    local: np.ndarray
+
+
+class PoseCellStage:
+    """Yaw-bias correction, odometry gate and pose cells: template and odometry -> action."""
+
+    def __init__(self, config: PoseCellStageConfig | None = None, **overrides: Any) -> None:
+        self.config = make_config(PoseCellStageConfig, config, overrides)
+        self.network = PoseCellNetwork(self.config)
+        self.gate = OdometryGate(self.config.odometry_gate)
+        self.bias = YawBiasEstimator(self.config.odometry_bias)
+        self.actions = {0: 0, 1: 0, 2: 0, 3: 0}
+        #: stamp of the previous odometry sample, for samples that carry no dt
+        self.prev_stamp: float | None = None
+
+    def on_template(self, template: int, relative_rad: float = 0.0) -> bool:
+        """A recognised (or new) visual template. The bias sees every recognition, the gate's
+        refusals too (a look-alike still faces the way the place was seen); the pose cells see
+        what the gate lets through. Returns whether they saw it."""
+        self.bias.on_template(template, relative_rad)
+        if self.gate.enabled and not self.gate.check(template):
+            return False
+        self.network.on_view_template(template, relative_rad)
+        return True
+
+    def on_odometry(self, vtrans: float, vrot: float, dt: float | None = None, stamp: float = 0.0) -> Action:
+        """One odometry sample -> the action for the experience map. ``dt`` None: OpenRatSLAM's rule,
+        the time since the previous sample (the first one moves nothing)."""
+        if dt is None:
+            dt = 0.0 if self.prev_stamp is None else stamp - self.prev_stamp
+        self.prev_stamp = stamp
+        if not (math.isfinite(dt) and dt >= 0):
+            raise InvalidInput(f"odometry dt {dt} is not a finite non-negative number")
+        vrot = self.bias.correct(vrot, dt)
+        self.network.on_odo(vtrans, vrot, dt)
+        if self.gate.enabled:
+            self.gate.on_odo(vtrans, vrot, dt)
+        action, src, dst, rel = self.network.get_action()
+        self.bias.on_action(action, dst, rel)
+        self.actions[action] += 1
+        return Action(action, src, dst, rel, vtrans, vrot, dt)
+
+    def new_session(self) -> None:
+        """A new session on an old map: times start again."""
+        self.prev_stamp = None
+        self.bias.new_session()
+
+    def info(self) -> dict[str, Any]:
+        pc, bias = self.network, self.bias
+        return {"templates": len(pc.templates), "experiences": len(pc.experiences),
+                "actions": {str(k): v for k, v in self.actions.items()}, "gate_refused": self.gate.refused,
+                **({"yaw_bias_rad_s": round(bias.bias, 6), "yaw_bias_samples": bias.samples,
+                    "yaw_bias_outliers": bias.outliers} if bias.enabled else {}),
+                "best_pose_cells": [round(v, 3) for v in pc.best]}
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"pc": self.network.state_dict(), "gate": self.gate.state_dict(), "bias": self.bias.state_dict(),
+                "actions": {str(k): v for k, v in self.actions.items()},
+                "prev_odom_stamp": -1.0 if self.prev_stamp is None else self.prev_stamp}
+
+    def load_state_dict(self, st: dict[str, Any]) -> None:
+        self.network.load_state_dict(st["pc"])
+        if "gate" in st:
+            self.gate.load_state_dict(st["gate"])
+        if "bias" in st:
+            self.bias.load_state_dict(st["bias"])
+        self.actions = {int(k): int(v) for k, v in st.get("actions", {}).items()} or self.actions
+        stamp = float(st.get("prev_odom_stamp", -1.0))
+        self.prev_stamp = None if stamp < 0 else stamp
+
+
+def integrate(em: ExperienceMap, action: Action, stamp: float) -> MapPose:
+    """Move the experience map by one action and its odometry; the robot's pose after it."""
+    em.on_odo(action.vtrans, action.vrot, action.dt)
+    if action.action:
+        em.on_action(action.action, action.src_id, action.dst_id, action.relative_rad, stamp)
+    exp_id, *local = em.local_pose()
+    return MapPose(np.array(em.robot_pose(), dtype=np.float64), exp_id, np.array(local, dtype=np.float64))
+
+
+class CameraOdometry:
+    """RatSLAM's visual odometry on a stream of stamped frames: each frame -> (vtrans, vrot, dt),
+    dt from the stamps (1 / camera_hz before the first), zero motion until two frames were seen."""
+
+    def __init__(self, config: VisualOdometryConfig | None = None, **overrides: Any) -> None:
+        self.odometry = VisualOdometry(make_config(VisualOdometryConfig, config, overrides))
+        self.prev_stamp: float | None = None
+
+    def on_frame(self, pixels: np.ndarray, stamp: float) -> tuple[float, float, float]:
+        dt = 1.0 / self.odometry.config.camera_hz if self.prev_stamp is None else stamp - self.prev_stamp
+        if dt < 0:
+            raise InvalidInput(f"image stamp {stamp} is earlier than the previous one ({self.prev_stamp})")
+        res = self.odometry.on_image(pixels, dt)
+        self.prev_stamp = stamp
+        vtrans, vrot = res if res is not None else (0.0, 0.0)
+        return vtrans, vrot, dt
+
+
+class BackEndConfig(BaseModel):
+    """The back end's sections, as in a run's config."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    pose_cells: PoseCellStageConfig = Field(default_factory=PoseCellStageConfig)
+    experience_map: ExperienceMapConfig = Field(default_factory=ExperienceMapConfig)
+
+
+class BackEnd:
+    """Template and odometry per frame -> the robot's pose on the experience map."""
+
+    def __init__(self, config: BackEndConfig | None = None, **overrides: Any) -> None:
+        self.config = make_config(BackEndConfig, config, overrides)
+        self.pose_cells = PoseCellStage(self.config.pose_cells)
+        self.experience_map = ExperienceMap(self.config.experience_map)
+
+    def step(self, template: int | None, relative_rad: float, vtrans: float, vrot: float,
+             dt: float | None = None, stamp: float = 0.0) -> MapPose:
+        """One frame: its template (None: the front end gave none) and its odometry."""
+        if template is not None:
+            self.pose_cells.on_template(template, relative_rad)
+        return integrate(self.experience_map, self.pose_cells.on_odometry(vtrans, vrot, dt, stamp), stamp)
+
+    def warm_up(self) -> None:
+        self.experience_map.warm_up()

@@ -1,0 +1,102 @@
+"""What the commands print: a run's summary table, its evaluation and the comparison table."""
+
+from __future__ import annotations
+
+import sys
+from typing import Any
+
+
+def print_summary(report: dict[str, Any]) -> None:
+    """report.json as one table (a row per stage) and the run's rates, losses and folder."""
+    from rich.console import Console
+    from rich.table import Table
+
+    con = Console()
+    t = Table(title=f"run {report.get('run')} ({report.get('topology')}, {report.get('mode')})")
+    for col in ("stage", "processed", "tau p50 ms", "tau p95 ms", "dropped", "errors"):
+        t.add_column(col, justify="right" if col != "stage" else "left")
+    for name, st in report.get("stages", {}).items():
+        if st.get("missing"):
+            t.add_row(name, "missing", "", "", "", "")
+            continue
+        t.add_row(name, str(st["processed"]), f"{st['tau_p50_ms']:.1f}", f"{st['tau_p95_ms']:.1f}",
+                  str(st["dropped"]), str(st["errors"]))
+    con.print(t)
+    fp = report.get("f_pipeline_predicted")
+    loss = report.get("loss")
+    # a loss that was not measured is said so: never a 0 that nobody counted
+    loss_text = "loss unknown" if loss is None else (
+        f"loss {100 * loss:.1f} % ({report.get('frames_lost', '?')} of {report.get('frames_expected', '?')} frames)")
+    con.print(f"frames in {report.get('frames_in')}, out {report.get('frames_out')} "
+              f"(strided {report.get('frames_strided')}), {loss_text}, "
+              f"f_in {report.get('f_in', 0):.2f} Hz, f_out {report.get('f_out', 0):.2f} Hz, "
+              f"f_pipeline {fp if fp is None else round(fp, 2)} Hz (bottleneck {report.get('bottleneck')})")
+    causes = _loss_causes(report.get("loss_breakdown"))
+    if causes:
+        con.print(f"loss by cause: {causes}")
+    src = report.get("source") or {}
+    if src.get("lost_before_source"):  # a live ROS 2 camera's gaps in its sequence numbers
+        con.print(f"lost before the source: {src['lost_before_source']} frames (publishers' sequence numbers)")
+    con.print(f"run folder: {report.get('run_dir')}")
+
+
+def _loss_causes(breakdown: dict[str, Any] | None) -> str:
+    """One line of report.json's ``loss_breakdown``: the source's losses, each stage's refused /
+    dropped messages, and what no counter explains."""
+    if not breakdown:
+        return ""
+    parts = [f"source: {cause} {n}" for cause, n in (breakdown.get("source") or {}).items() if n]
+    for stage, b in (breakdown.get("stages") or {}).items():
+        parts += [f"{stage} {what.replace('_', ' ')} {n}" for what, n in b.items() if n]
+    if breakdown.get("unattributed"):
+        parts.append(f"in flight or lost while restarting {breakdown['unattributed']}")
+    return "; ".join(parts)
+
+
+def print_evaluation(ev: dict[str, Any]) -> None:
+    """evaluation.json in a few lines: trajectory, odometry and map errors, loop closures."""
+    from ..evaluation import closures_line
+
+    t, o = ev.get("trajectory_ape", {}), ev.get("odometry_ape", {})
+    m = ev.get("map_paper", {})
+    print(f"trajectory APE mean {t.get('mean_m', float('nan')):.3f} m (max {t.get('max_m', float('nan')):.3f}); "
+          f"odometry APE mean {o.get('mean_m', float('nan')):.3f} m; "
+          f"map nodes {ev.get('map_nodes', 0)}, paper metric mean {m.get('mean_m', float('nan')):.3f} m")
+    if "map_trajectory_ape" in ev:
+        print(f"trajectory on the final map (trajectory_map.tum) APE mean {ev['map_trajectory_ape']['mean_m']:.3f} m "
+              f"(max {ev['map_trajectory_ape']['max_m']:.3f})")
+    if "loop_closures" in ev:
+        print(closures_line(ev["loop_closures"]))
+    print("evaluation.json and map.png written")
+
+
+def print_compare(table: dict, radius: float = 1.0) -> None:
+    """compare_runs' table (a row per pipeline) and each pipeline's per-stage latency."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from ..evaluation.compare import COLUMNS
+
+    t = Table(title=f"NeoSLAM (default, paper) vs RatSLAM, same stream; closures correct within {radius:g} m")
+    t.add_column("")
+    for _key, short in COLUMNS:
+        t.add_column(short, justify="right")
+    for name, row in table.items():
+        label = row.get("label", name) + (" = default" if row.get("same_as_default") else "")
+        t.add_row(label, *[("" if row.get(c) is None else f"{row[c]:.3f}" if isinstance(row.get(c), float)
+                            else str(row[c])) for c, _short in COLUMNS])
+    con = Console()
+    con.print(t)
+    lat = Table(title="per-stage latency (tau p50, ms)")
+    lat.add_column("pipeline")
+    lat.add_column("stages")
+    for name, row in table.items():
+        taus = row.get("stage_tau_p50_ms") or {}
+        lat.add_row(row.get("label", name), ", ".join(f"{s}: {v:.1f}" for s, v in taus.items() if v is not None))
+    con.print(lat)
+
+
+def error(message: Any, code: int) -> int:
+    """Print ``error: message`` on stderr; the command's exit code."""
+    print(f"error: {message}", file=sys.stderr)
+    return code

@@ -1,0 +1,247 @@
+"""``neoslam run`` and what watches or links runs: ``view``, ``monitor``, ``router``.
+
+The run options are config flags (flags.py): each names the config value it sets, and the
+config file with those values on top is validated as one."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from .flags import ConfigFlags
+from .report import error, print_evaluation, print_summary
+
+#: what `neoslam run` runs with no --config
+DEFAULT_CONFIG = "default"
+
+
+def _source_params(pairs: list[str]) -> dict[str, Any]:
+    """``-p KEY=VALUE`` pairs; a value is JSON when it parses as JSON, else the text."""
+    params = {}
+    for kv in pairs:
+        k, _, v = kv.partition("=")
+        try:
+            params[k] = json.loads(v)
+        except json.JSONDecodeError:
+            params[k] = v
+    return params
+
+
+def _stages(text: str) -> list[str]:
+    from ..runtime.parts import parse_stages
+
+    return parse_stages(text)
+
+
+def add_run_options(p: argparse.ArgumentParser) -> ConfigFlags:
+    """The options of every command that runs a pipeline (run, compare)."""
+    p.add_argument("--config", "-c", help=f"YAML config file, or the name of a shipped config: default, paper datasets... "
+                        f"(`neoslam config list`; default: {DEFAULT_CONFIG})")
+    flags = ConfigFlags(p)
+    flags.add("--source", path="source.kind",
+              help="source kind (synthetic, folder, video, bag, zenoh-ros2, zenoh, emulated)")
+    flags.add("--source-param", "-p", path="source.params", convert=_source_params, action="append",
+              metavar="KEY=VALUE",
+              help="source parameter, e.g. -p path=data/run1 (repeatable; values parsed as JSON)")
+    flags.add("--topology", path="run.topology", help="one process per stage, or one")
+    mode = p.add_mutually_exclusive_group()
+    flags.add("--lossless", path="run.mode", sets="lossless", dest="mode", to=mode,
+              help="process every frame; the source is back-pressured (default for recorded data)")
+    flags.add("--realtime", path="run.mode", sets="realtime", dest="mode", to=mode,
+              help="bounded drop-oldest queues; a slow stage never blocks its upstream")
+    flags.add("--rate", path="source.rate", also={"source.pacing": "fixed"},
+              help="publish frames at this fixed rate (Hz)")
+    flags.add("--rate-multiplier", path="source.rate_multiplier", also={"source.pacing": "recorded"},
+              help="replay recorded timing sped up by this factor")
+    flags.add("--max-frames", path="source.max_frames", help="stop after this many frames")
+    flags.add("--duration", path="source.duration", help="stop after this many seconds")
+    p.add_argument("--out", help="run folder (default: runs/<name>)")
+    flags.add("--no-live", path="run.live", sets=False, help="no live table / progress bar")
+    return flags
+
+
+def load_run_config(args: argparse.Namespace, fixed: dict[str, Any] | None = None) -> Any:
+    """The config of ``--config`` with the flags given on top (and ``fixed``: dotted paths);
+    a bad value ends the command with one line naming the field (exit 2)."""
+    from ..config import ConfigError, load_config
+
+    try:
+        return load_config(args.config or DEFAULT_CONFIG, args.config_flags.overrides(args, fixed))
+    except ConfigError as exc:
+        raise SystemExit(error(exc, 2)) from None
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("run", help="run a pipeline (default: NeoSLAM on the synthetic world)",
+                       description="Run a pipeline to the end of its source; writes report.json, "
+                                   "timeline.csv and the stage outputs into the run folder.")
+    flags = add_run_options(p)
+    flags.add("--checkpoint-every", path="run.checkpoint_every",
+              help="save every stage's state every N frames")
+    p.add_argument("--resume", metavar="RUN_DIR", help="resume from the last checkpoint of RUN_DIR")
+    p.add_argument("--map", metavar="MAP_FILE", help="start from a map exported by `neoslam map export` "
+                   "(long-term deployment)")
+    flags.add("--pipeline", path="run.pipeline", help="pipeline name (neoslam, ratslam, oracle, emulated)")
+    flags.add("--oracle-templates", path="run.pipeline", sets="oracle",
+              help="template ids from ground truth instead of the front end (A-D): the back end's "
+                   "best map (the `oracle` pipeline; docs/evaluation.md)")
+    flags.add("--oracle-radius", path="oracle.radius_m", metavar="M",
+              help="the oracle's template radius in metres (default: exp_delta_pc_threshold x "
+                   "pc_cell_x_size, the experience spacing)")
+    flags.add("--oracle-heading-tolerance", path="oracle.heading_tolerance_deg", metavar="DEG",
+              help="the oracle matches a template only within this heading difference (default 45; "
+                   "180 ignores the heading: closures a forward camera cannot make)")
+    flags.add("--ros2-out", path="ros2_out.format", nargs="?", const="bridge",
+              help="publish the outputs as ROS 2 messages: keys of zenoh-bridge-ros2dds (default), "
+                   "of rmw_zenoh, or both (docs/ros2.md)")
+    flags.add("--ros2-connect", path="ros2_out.connect", metavar="ENDPOINT",
+              help="zenoh endpoint of the ROS 2 side's router, e.g. tcp/localhost:7447 (repeatable)")
+    flags.add("--stages", path="run.stages", convert=_stages, metavar="A,B|rest",
+              help="run only these stages here (the rest on other hosts, same --run-id), "
+                   "or 'rest': those no other host runs")
+    flags.add("--run-id", path="run.run_id",
+              help="the run's id (key expressions neoslam/<id>/...), shared by its hosts")
+    flags.add("--connect", path="bus.connect", metavar="ENDPOINT",
+              help="zenoh endpoint (a router) linking this run to other hosts, e.g. "
+                   "tcp/10.0.0.2:7447 (repeatable; bus.connect)")
+    flags.add("--router-listen", path="bus.router_listen", metavar="ENDPOINT",
+              help="the supervisor's router also listens here, for the other hosts of the run "
+                   "(repeatable; bus.router_listen)")
+    p.add_argument("--view", action="store_true",
+                   help="show the run live in a rerun viewer (recorded to RUN_DIR/view.rrd)")
+    p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("view", help="show a run (live or finished) in a rerun viewer",
+                       description="Camera frame, template ids and loop closures, the experience "
+                                   "map with ground truth and odometry, and each stage's rate, "
+                                   "recorded to a rerun file (RUN_DIR/view.rrd unless --save). "
+                                   "Attaches to a running run; shows a finished run's files.")
+    p.add_argument("run_dir", help="run folder (a running run's has endpoints.json)")
+    p.add_argument("--save", metavar="FILE", help="record to FILE (.rrd) without opening a window")
+    p.add_argument("--no-window", action="store_true", help="record to RUN_DIR/view.rrd only")
+    p.add_argument("--duration", type=float, help="stop watching a live run after this many seconds")
+    p.add_argument("--wait", type=float, default=0.0,
+                   help="wait this many seconds for the run to start (endpoints.json)")
+    p.set_defaults(func=cmd_view)
+
+    p = sub.add_parser("monitor", help="attach a live table to a running pipeline",
+                       description="Show the live stats of a running pipeline.")
+    p.add_argument("run_dir", nargs="?", help="run folder of the running pipeline (has endpoints.json)")
+    p.add_argument("--run", help="run id (instead of RUN_DIR)")
+    p.add_argument("--connect", action="append", help="zenoh endpoint to connect to (repeatable)")
+    p.add_argument("--duration", type=float, help="stop after this many seconds")
+    p.set_defaults(func=cmd_monitor)
+
+    p = sub.add_parser("router", help="a zenoh router linking the hosts of a split run",
+                       description="A zenoh router (scouting off) that the supervisors of a run "
+                                   "split over hosts connect to (neoslam run --connect).")
+    p.add_argument("--listen", action="append", required=True, metavar="ENDPOINT",
+                   help="endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)")
+    p.add_argument("--connect", action="append", metavar="ENDPOINT", help="another router (repeatable)")
+    p.add_argument("--zenoh-config", metavar="FILE",
+                   help="zenoh json5 file for TLS and access control (as bus.zenoh_config)")
+    p.add_argument("--duration", type=float, help="stop after this many seconds")
+    p.set_defaults(func=cmd_router)
+
+
+def _start_viewer(cfg: Any, args: argparse.Namespace) -> tuple[Any, str]:
+    """``run --view``: the viewer as a child process (``neoslam view RUN_DIR``) that attaches as
+    soon as the run's router is up; the run folder is fixed here so that both know it."""
+    import subprocess
+
+    from ..runtime.topology import make_run_dir
+
+    _, run_dir = make_run_dir(cfg, args.out)
+    return subprocess.Popen([sys.executable, "-m", "neoslam_stream.cli", "view", str(run_dir),
+                             "--wait", "120"]), str(run_dir)
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    import subprocess
+
+    from ..launch import RunError, run
+
+    if args.oracle_templates and args.pipeline not in (None, "oracle"):
+        return error(f"--oracle-templates replaces the front end of the neoslam pipeline; it cannot run "
+                     f"with --pipeline {args.pipeline}", 2)
+    cfg = load_run_config(args)
+    viewer = None
+    if args.view:
+        viewer, args.out = _start_viewer(cfg, args)
+    try:
+        result = run(cfg, args.out, args.resume, args.map)
+    except BaseException as exc:
+        if viewer is not None:  # the run did not end normally: no report.json will end the viewer
+            viewer.terminate()
+            viewer.wait(10)
+        if isinstance(exc, RunError):
+            return error(exc, 1)
+        raise
+    if viewer is not None:  # it ends by itself once report.json is there and the map is logged
+        try:
+            viewer.wait(60)
+        except subprocess.TimeoutExpired:
+            viewer.terminate()
+    if "part" in result.report:  # one host's share of a split run: the report is the other host's
+        print(f"run {result.report['run']}: stages {', '.join(result.report['part'])} done here "
+              f"(restarts {result.report['restarts']}); the report is in the run folder of the host "
+              f"with the source (part.json: {result.run_dir / 'part.json'})")
+        return 128 + (result.signal or 2) if result.interrupted else 0
+    print_summary(result.report)
+    run_dir = result.run_dir
+    if cfg.run.pipeline == "oracle" and not (run_dir / "groundtruth.tum").exists():
+        return error("--oracle-templates needs a source with ground truth (this one published none, so "
+                     "no template was made)", 1)
+    if (run_dir / "groundtruth.tum").exists() and (run_dir / "trajectory.tum").exists():
+        from ..evaluation import evaluate_run
+
+        print_evaluation(evaluate_run(run_dir))
+    if result.interrupted:  # the shell convention: 128 + the signal (130 for Ctrl-C, 143 for SIGTERM)
+        return 128 + (result.signal or 2)
+    return 0
+
+
+def cmd_view(args: argparse.Namespace) -> int:
+    from ..viewer import view
+
+    try:
+        st = view(args.run_dir, save=args.save, window=False if (args.save or args.no_window) else None,
+                  duration=args.duration, wait_s=args.wait)
+    except FileNotFoundError as exc:
+        return error(exc, 2)
+    out = args.save or str(Path(args.run_dir) / "view.rrd")
+    print(f"viewed {args.run_dir}: {st.templates} templates ({st.loop_closures} loop closures), "
+          f"{st.poses} poses, {st.images} camera frames ({st.images_dropped} skipped), "
+          f"rates of {len(st.stages)} stages; recording: {out} (open it with `rerun {out}`)")
+    return 0
+
+
+def cmd_monitor(args: argparse.Namespace) -> int:
+    from ..runtime.monitor import attach
+
+    run, connect = args.run, args.connect or []
+    if args.run_dir:
+        ep = json.loads((Path(args.run_dir) / "endpoints.json").read_text())
+        run, connect = ep["run"], ep["connect"] + connect
+    if not run or not connect:
+        return error("give a RUN_DIR (with endpoints.json) or --run and --connect", 2)
+    attach(run, connect, duration=args.duration)
+    return 0
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    import os
+
+    from ..runtime.bus import ZENOH_CONFIG_ENV
+    from ..runtime.parts import serve_router
+
+    if args.zenoh_config:
+        if not Path(args.zenoh_config).is_file():
+            return error(f"no zenoh config file {args.zenoh_config}", 2)
+        os.environ[ZENOH_CONFIG_ENV] = args.zenoh_config
+    print(f"zenoh router listening on {', '.join(args.listen)} (Ctrl-C to stop)", flush=True)
+    serve_router(args.listen, args.connect, args.duration)
+    return 0

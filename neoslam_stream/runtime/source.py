@@ -1,0 +1,55 @@
+"""What the source process reads: the :class:`Source` protocol and the :class:`SourceFrame` it yields.
+
+The runtime hosts a source as it hosts a node: built in its own process from a dotted factory path
+(``SourceSpec``), iterated, paced and published by ``runtime.source_runner``. It never knows which
+source it runs; ``launch`` resolves a source kind to its factory (``neoslam_stream.sources``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+__all__ = ["Source", "SourceFrame"]
+
+
+@dataclass
+class SourceFrame:
+    """One camera frame and what was measured with it.
+
+    ``frame`` is the source's sequence number, consecutive from 0 (a gap means the source itself
+    lost a frame). ``stamp`` is source time in seconds. Exactly one of ``image`` (HxW or HxWxC uint8,
+    ``encoding`` rgb8/bgr8/mono8) and ``compressed`` (JPEG/PNG bytes, ``format`` "jpeg"/"png") is set,
+    or neither for odometry-only sources. ``odom`` is ``(vtrans m/s, vrot rad/s, dt s)`` over the
+    interval ending at this frame; ``groundtruth`` is ``(x, y, theta)`` in metres/radians.
+    """
+
+    frame: int
+    stamp: float
+    image: np.ndarray | None = None
+    encoding: str = "rgb8"
+    compressed: bytes | None = None
+    format: str | None = None
+    odom: tuple[float, float, float] | None = None
+    groundtruth: tuple[float, float, float] | None = None
+
+
+@runtime_checkable
+class Source(Protocol):
+    """Iterate to get frames in order. ``rate_hz``: the recorded/nominal rate; ``length``: the
+    number of frames when known (progress bars), None for live/unbounded sources. A source may also
+    have ``errors`` (records it skipped, counted per cause), which the runner reports."""
+
+    rate_hz: float | None
+    length: int | None
+
+    def __iter__(self) -> Iterator[SourceFrame]: ...
+
+    def info(self) -> dict[str, Any]:
+        """Facts about the source for report.json (kind, path, size, rate...)."""
+        ...
+
+    def close(self) -> None: ...

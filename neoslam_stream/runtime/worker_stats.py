@@ -1,0 +1,193 @@
+"""What a worker measures of the nodes it hosts, and the ``stats/<stage>`` messages it publishes.
+
+Per hosted node: messages received, processed, published, refused as bad input and lost to
+internal errors (with their causes, bounded), tau_i and the queueing time (bounded memory), and
+the process's CPU, RSS and PSS. The monitor and the supervisor read these messages.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from collections import defaultdict
+
+import numpy as np
+
+from .bus import key_for
+from .messages import Message, encode
+from .node import Node
+
+log = logging.getLogger("neoslam.worker")
+
+
+class ServiceStats:
+    """Per-stage service and queueing times (seconds) with bounded memory."""
+
+    MAX_SAMPLES = 200_000
+    #: the recent percentiles cover the newest this many frames (the scaling curve's step)
+    RECENT = 1000
+
+    def __init__(self) -> None:
+        self.tau: list[float] = []
+        self.wait: list[float] = []
+        self.tau_sum = 0.0
+        self.n = 0
+        self.tau_max = 0.0
+
+    def add(self, tau: float, wait: float) -> None:
+        self.n += 1
+        self.tau_sum += tau
+        self.tau_max = max(self.tau_max, tau)
+        if len(self.tau) >= self.MAX_SAMPLES:  # keep the newest half: memory stays bounded
+            del self.tau[: self.MAX_SAMPLES // 2]
+            del self.wait[: self.MAX_SAMPLES // 2]
+        self.tau.append(tau)
+        self.wait.append(wait)
+
+    def summary(self) -> dict[str, float]:
+        if not self.tau:
+            return {"tau_mean_ms": 0.0, "tau_p50_ms": 0.0, "tau_p95_ms": 0.0, "tau_max_ms": 0.0,
+                    "tau_recent_p50_ms": 0.0, "tau_recent_p95_ms": 0.0,
+                    "queue_p50_ms": 0.0, "queue_p95_ms": 0.0}
+        t = np.asarray(self.tau) * 1e3
+        w = np.asarray(self.wait) * 1e3
+        recent = t[-self.RECENT:]
+        return {"tau_mean_ms": self.tau_sum / self.n * 1e3,
+                "tau_p50_ms": float(np.percentile(t, 50)), "tau_p95_ms": float(np.percentile(t, 95)),
+                "tau_recent_p50_ms": float(np.percentile(recent, 50)),
+                "tau_recent_p95_ms": float(np.percentile(recent, 95)),
+                "tau_max_ms": self.tau_max * 1e3,
+                "queue_p50_ms": float(np.percentile(w, 50)), "queue_p95_ms": float(np.percentile(w, 95))}
+
+
+class StageRuntime:
+    """One hosted node with its counters and its topic names on the bus."""
+
+    def __init__(self, adapter: Node, remap: dict[str, str] | None = None) -> None:
+        self.adapter = adapter
+        self.name = adapter.name
+        remap = remap or {}
+        self.inputs = [remap.get(t, t) for t in adapter.inputs]
+        #: the inputs that arrive once per frame (checkpoint cuts wait for them)
+        self.ordered_inputs = [remap.get(t, t) for t in adapter.inputs if t not in adapter.unordered_inputs]
+        self.outputs = [remap.get(t, t) for t in adapter.outputs]
+        self.to_adapter = {remap.get(t, t): t for t in adapter.inputs}
+        self.to_bus = {t: remap.get(t, t) for t in adapter.outputs}
+        self.received = 0
+        self.processed = 0
+        self.published: dict[str, int] = defaultdict(int)
+        self.errors = 0
+        self.error_causes: dict[str, int] = {}
+        #: exceptions that are no input error: bugs (see Worker._process)
+        self.internal_errors = 0
+        self.internal_error_causes: dict[str, int] = {}
+        self.times = ServiceStats()
+        self.last_frame = -1
+        #: the newest frame number accepted on any input (the base of ``max_frame_jump``)
+        self.frame_seen = -1
+        self.checkpoint_index = 0
+        #: multi-input stages with checkpoints: messages at or beyond the next cut, held until
+        #: every input has reached the cut (see Worker._run_stage), and how far each input got
+        self.deferred: list[tuple[str, Message, float]] = []
+        self.reached: dict[str, int] = {}
+
+    #: distinct causes kept per stage; the others are counted under OTHER_CAUSES
+    MAX_CAUSES = 50
+    OTHER_CAUSES = "(other causes)"
+
+    def record_error(self, cause: str, n: int = 1) -> None:
+        """``n`` messages refused as bad input for ``cause`` (each counted once)."""
+        self.errors += n
+        if _count_cause(self.error_causes, cause, n, self.MAX_CAUSES, self.OTHER_CAUSES):
+            log.warning("stage %s: skipped a message: %s", self.name, cause)
+
+    def record_bug(self, cause: str, n: int = 1) -> bool:
+        """``n`` messages lost to an exception that is no input error; True for a new cause (the
+        caller logs its traceback)."""
+        self.internal_errors += n
+        return _count_cause(self.internal_error_causes, cause, n, self.MAX_CAUSES, self.OTHER_CAUSES)
+
+
+def _count_cause(causes: dict[str, int], cause: str, n: int, limit: int, other: str) -> bool:
+    """Add ``n`` to ``cause`` (its first 200 characters) in ``causes``, or to ``other`` once
+    ``limit`` causes are known, so that the counts always add up to the total. True when a key is
+    new (a new cause, or the first one counted under ``other``): the caller logs it."""
+    key = cause[:200]
+    if key not in causes and len(causes) >= limit:
+        key = other
+    new = key not in causes
+    causes[key] = causes.get(key, 0) + n
+    return new
+
+
+class WorkerStats:
+    """The stats part of :class:`~neoslam_stream.runtime.worker.Worker` (mixed into it: it reads
+    the worker's spec, stages, queue, bus and control gate)."""
+
+    def stats_messages(self, final: bool = False) -> list[Message]:
+        import psutil
+
+        if self._proc is None:
+            self._proc = psutil.Process()
+            self._proc.cpu_percent(None)
+        cpu = self._proc.cpu_percent(None)
+        rss = self._proc.memory_info().rss / 2**20
+        pss = self._pss_mb()
+        ct = self._proc.cpu_times()
+        cpu_s = ct.user + ct.system
+        depth = self.queue.depth() if self.queue else {}
+        qstats = self.queue.stats if self.queue else {}
+        out = []
+        now = time.time()
+        for i, st in enumerate(self.stages):
+            inputs = {}
+            for t in st.inputs:
+                if t in qstats and self.consumers[t][0] == i:
+                    inputs[t] = {"received": qstats[t].received, "evicted": qstats[t].evicted,
+                                 "depth": depth.get(t, 0)}
+            try:
+                info = st.adapter.info()
+            except Exception as exc:  # info is diagnostic: never let it break stats
+                info = {"info_error": str(exc)}
+            data = {"stage": st.name, "worker": self.spec.name, "pid": os.getpid(), "time": now,
+                    "started": self._started, "received": st.received, "processed": st.processed,
+                    "published": dict(st.published), "errors": st.errors,
+                    "error_causes": dict(st.error_causes), "counters": dict(st.adapter.counters),
+                    "internal_errors": st.internal_errors,
+                    "internal_error_causes": dict(st.internal_error_causes),
+                    "inputs": inputs, "outputs": list(st.outputs),
+                    "consumes": list(st.inputs), "last_frame": st.last_frame,
+                    "info": info, "cpu_percent": cpu, "cpu_s": cpu_s, "rss_mb": rss, "pss_mb": pss,
+                    "final": final,
+                    # per process: the worker's first stage carries it (the report sums processes)
+                    "control_refused": self.control.refused if i == 0 else 0,
+                    "control_refused_causes": dict(self.control.causes) if i == 0 else {},
+                    "n_stages_in_worker": len(self.stages), **st.times.summary()}
+            out.append(Message("stats", 0, now, data))
+        return out
+
+    #: seconds between two PSS readings (reading /proc/<pid>/smaps_rollup costs a few ms)
+    PSS_PERIOD_S = 5.0
+
+    def _pss_mb(self) -> float | None:
+        """Proportional set size (MB): pages shared between processes (libraries, the parent's
+        pages after a fork) count once in the sum over processes, unlike RSS. None where the
+        platform does not report it."""
+        now = time.monotonic()
+        if now - getattr(self, "_pss_at", -1e9) >= self.PSS_PERIOD_S:
+            self._pss_at = now
+            try:
+                self._pss_cache = self._proc.memory_full_info().pss / 2**20
+            except Exception:  # psutil.AccessDenied, no smaps on this platform...
+                self._pss_cache = None
+        return getattr(self, "_pss_cache", None)
+
+    def publish_stats(self, final: bool = False) -> None:
+        assert self.bus is not None
+        for m in self.stats_messages(final):
+            try:
+                self.bus.session.put(key_for(self.spec.run, f"stats/{m.data['stage']}"),
+                                     encode(m, validate=False))
+            except Exception as exc:  # stats must never stop the work
+                log.warning("stats not published: %s", exc)

@@ -1,0 +1,87 @@
+"""A finished run's files, logged to a :class:`RunView`: templates.csv, the TUM files, map.json and
+the per-stage rates of timeline.csv."""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from .recording import RunView
+
+log = logging.getLogger("neoslam.viewer")
+
+
+def _read_csv(path: Path) -> list[dict[str, str]]:
+    if not path.exists():
+        return []
+    with path.open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _read_tum(path: Path) -> np.ndarray:
+    """(stamp, x, y, yaw) rows of a TUM file; an empty (0, 4) array when it is missing or
+    unreadable (then logged with its cause: a damaged file must not stop the rest being shown)."""
+    if not path.exists():
+        return np.zeros((0, 4))
+    from ..tum import read_tum
+
+    try:
+        return read_tum(path)
+    except (OSError, ValueError) as exc:
+        log.warning("%s not shown: %s", path, exc)
+        return np.zeros((0, 4))
+
+
+def log_run_folder(run_dir: str | Path, view: RunView) -> None:
+    """Log what a run folder holds: templates.csv, trajectory.tum, groundtruth.tum, odometry.tum,
+    map.json and the per-stage rates of timeline.csv. Each pose is put on the ``frame`` timeline
+    through the stamp -> frame map of templates.csv (the stamps the recorder wrote with the frame
+    numbers), and on ``stamp`` in any case."""
+    run_dir = Path(run_dir)
+    templates = _read_csv(run_dir / "templates.csv")
+    frame_of: dict[str, int] = {}
+    for row in templates:
+        frame_of[f"{float(row['stamp']):.6f}"] = int(row["frame"])
+    traj = _read_tum(run_dir / "trajectory.tum")
+    for stamp, x, y, th in traj:
+        view.pose(frame_of.get(f"{stamp:.6f}", -1) if frame_of else -1, stamp, np.array([x, y, th]))
+    for row in templates:
+        view.template(int(row["frame"]), float(row["stamp"]), int(row["template_id"]),
+                      row.get("is_loop_closure", "0") not in ("0", "", "false", "False"))
+    for stamp, x, y, th in _read_tum(run_dir / "groundtruth.tum"):
+        view.groundtruth(frame_of.get(f"{stamp:.6f}"), stamp, np.array([x, y, th]))
+    for stamp, x, y, th in _read_tum(run_dir / "odometry.tum"):
+        view.odometry_pose(frame_of.get(f"{stamp:.6f}"), stamp, np.array([x, y, th]))
+    log_timeline(run_dir / "timeline.csv", view)
+    map_path = run_dir / "map.json"
+    if map_path.exists():
+        try:
+            view.experience_map(json.loads(map_path.read_text()))
+        except (ValueError, KeyError, TypeError) as exc:
+            log.warning("map.json not shown: %s", exc)
+
+
+def timeline_rates(path: Path) -> list[tuple[float, str, float]]:
+    """(t_s, stage, rate_hz) from timeline.csv: each stage's processed count difference over the
+    time between two of its rows."""
+    last: dict[str, tuple[float, int]] = {}
+    out = []
+    for row in _read_csv(path):
+        try:
+            t, stage, done = float(row["t_s"]), row["stage"], int(row["processed"])
+        except (KeyError, ValueError):
+            continue
+        if stage in last and t > last[stage][0]:
+            t0, n0 = last[stage]
+            out.append((t, stage, (done - n0) / (t - t0)))
+        last[stage] = (t, done)
+    return out
+
+
+def log_timeline(path: Path, view: RunView) -> None:
+    for t, stage, rate in timeline_rates(path):
+        view.stage_rate(t, stage, rate)

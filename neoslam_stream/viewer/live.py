@@ -1,0 +1,200 @@
+"""A running pipeline, logged live to a :class:`RunView`.
+
+The viewer attaches in client mode to the run's router (``endpoints.json``, as ``neoslam monitor``)
+and subscribes to :data:`LIVE_TOPICS`. Its zenoh callbacks only queue: images in a ring of
+:data:`IMAGE_RING` (the oldest dropped and counted, so a slow viewer never back-pressures a
+lossless run through zenoh's blocking congestion control), the small messages in an unbounded
+deque. One thread decodes and logs them, until the run's report.json (or part.json) appears.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections import deque
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .recording import RunView
+
+log = logging.getLogger("neoslam.viewer")
+
+#: images waiting to be logged; beyond this the oldest is dropped (counted in ``ViewStats``)
+IMAGE_RING = 4
+#: the run's topics the live viewer subscribes to (the stats of every stage come on stats/**)
+LIVE_TOPICS = ("image", "odom", "groundtruth", "visual_template", "experience_map/pose",
+               "experience_map/map", "stats/**")
+
+
+class LiveFeed:
+    """Subscriptions to a running pipeline; callbacks only queue (see the module docstring)."""
+
+    def __init__(self, run: str, connect: list[str]) -> None:
+        from ..runtime.bus import key_for, open_session
+
+        self.session = open_session(listen=[], connect=connect, mode="client")
+        self.images: deque[bytes] = deque(maxlen=IMAGE_RING)
+        self.images_dropped = 0
+        self.small: deque[tuple[str, bytes]] = deque()
+        self.cond = threading.Condition()
+        self.subs = []
+        for topic in LIVE_TOPICS:
+            self.subs.append(self.session.declare_subscriber(key_for(run, topic), self._callback(topic)))
+
+    def _callback(self, topic: str) -> Any:
+        def on(sample: Any) -> None:
+            payload = sample.payload.to_bytes()
+            with self.cond:
+                if topic == "image":
+                    if len(self.images) == self.images.maxlen:
+                        self.images_dropped += 1
+                    self.images.append(payload)
+                else:
+                    self.small.append((topic, payload))
+                self.cond.notify()
+        return on
+
+    def take(self, timeout: float) -> tuple[list[tuple[str, bytes]], list[bytes]]:
+        with self.cond:
+            if not self.small and not self.images:
+                self.cond.wait(timeout)
+            small, self.small = list(self.small), deque()
+            images = list(self.images)
+            self.images.clear()
+        return small, images
+
+    def close(self) -> None:
+        for s in self.subs:
+            s.undeclare()
+        self.session.close()
+
+
+class LiveLogger:
+    """Decodes the queued messages and logs them to a :class:`RunView`."""
+
+    def __init__(self, view: RunView) -> None:
+        # the algorithms' topics this viewer decodes: registered, so decoding validates them
+        from ..nodes.topics import ALGORITHM_TOPICS
+        from ..runtime.messages import register_topics
+
+        register_topics(ALGORITHM_TOPICS)
+
+        self.view = view
+        self.t0 = time.monotonic()
+        self.last_stats: dict[str, tuple[float, int]] = {}
+        self._bad_logged = False
+
+    def _bad(self, what: str, exc: Exception) -> None:
+        self.view.stats.bad_messages += 1
+        if not self._bad_logged:  # once: a stream of bad messages must not flood the log
+            log.warning("viewer: skipping a bad %s message: %s", what, exc)
+            self._bad_logged = True
+
+    def image(self, payload: bytes) -> None:
+        from ..nodes.camera import decode_rgb
+        from ..runtime.messages import decode
+
+        try:
+            msg = decode(payload, expected_type="image")
+            rgb = decode_rgb(msg.data)
+        except ValueError as exc:  # MessageError and StageInputError are ValueErrors
+            self._bad("image", exc)
+            return
+        self.view.image(msg.frame, msg.stamp, rgb)
+
+    def message(self, topic: str, payload: bytes) -> None:
+        from ..runtime.messages import decode
+
+        try:
+            msg = decode(payload)
+        except ValueError as exc:
+            self._bad(topic, exc)
+            return
+        d = msg.data
+        try:
+            if topic == "visual_template":
+                self.view.template(msg.frame, msg.stamp, int(d["id"]), bool(d.get("is_loop_closure")))
+            elif topic == "experience_map/pose":
+                self.view.pose(msg.frame, msg.stamp, np.asarray(d["pose"], dtype=np.float64))
+            elif topic == "groundtruth":
+                self.view.groundtruth(msg.frame, msg.stamp, np.asarray(d["pose"], dtype=np.float64))
+            elif topic == "odom":
+                self.view.odometry_step(msg.frame, msg.stamp, float(d["vtrans"]), float(d["vrot"]),
+                                        float(d.get("dt") or 0.0))
+            elif topic == "experience_map/map":
+                if d.get("export"):
+                    self.view.experience_map(d["export"], msg.frame)
+            elif msg.type == "stats":
+                self.stats(d)
+        except (KeyError, TypeError, ValueError) as exc:
+            self._bad(topic, exc)
+
+    def stats(self, d: dict[str, Any]) -> None:
+        stage = d.get("stage")
+        if not isinstance(stage, str) or stage == "source" or "processed" not in d:
+            return
+        now = time.monotonic() - self.t0
+        done = int(d["processed"])
+        prev = self.last_stats.get(stage)
+        self.last_stats[stage] = (now, done)
+        if prev is not None and now > prev[0]:
+            self.view.stage_rate(now, stage, (done - prev[1]) / (now - prev[0]))
+
+
+def watch_live(run_dir: Path, view: RunView, duration: float | None = None,
+               connect: list[str] | None = None) -> None:
+    """Log a running pipeline until its report.json (or part.json) appears (the run ended),
+    ``duration`` seconds pass or Ctrl-C; then log the final map from map.json when the run wrote one."""
+    ep = json.loads((run_dir / "endpoints.json").read_text())
+    feed = LiveFeed(ep["run"], list(ep["connect"]) + list(connect or []))
+    logger = LiveLogger(view)
+    t_end = None if duration is None else time.monotonic() + duration
+    ended_at: float | None = None
+    try:
+        while t_end is None or time.monotonic() < t_end:
+            small, images = feed.take(0.2)
+            for topic, payload in small:
+                logger.message(topic, payload)
+            for payload in images:
+                logger.image(payload)
+            if not small and not images:
+                if ended_at is None and _ended(run_dir):
+                    ended_at = time.monotonic()
+                if ended_at is not None and time.monotonic() - ended_at > 1.0:
+                    break
+    except KeyboardInterrupt:
+        pass
+    finally:
+        view.stats.images_dropped = feed.images_dropped
+        feed.close()
+    map_path = run_dir / "map.json"
+    if ended_at is not None and map_path.exists() and not view.stats.map_nodes:
+        try:
+            view.experience_map(json.loads(map_path.read_text()))
+        except (ValueError, KeyError, TypeError) as exc:
+            log.warning("map.json not shown: %s", exc)
+
+
+def _started(run_dir: Path) -> float:
+    """When this run started (endpoints.json is written at start): a report older than that
+    belongs to an earlier run in the same folder."""
+    return (run_dir / "endpoints.json").stat().st_mtime
+
+
+#: what a run writes into its folder when it ends: report.json (the host with the source), or
+#: part.json (a host running only some stages of a run split over hosts: runtime/parts.py)
+END_FILES = ("report.json", "part.json")
+
+
+def _ended(run_dir: Path) -> bool:
+    started = _started(run_dir)
+    return any((run_dir / f).exists() and (run_dir / f).stat().st_mtime >= started for f in END_FILES)
+
+
+def is_running(run_dir: Path) -> bool:
+    """A run folder whose run has not ended: endpoints.json and no end file newer than it."""
+    return (run_dir / "endpoints.json").exists() and not _ended(run_dir)

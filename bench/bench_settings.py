@@ -49,3 +49,13 @@ def load_settings(name: str) -> dict[str, Any]:
     data = read_settings(name)
     check_sections({k: v for k, v in data.items() if k != "protocol"}, f"bench/settings/{name}.yaml")
     return data
+
+
+def back_end_sections(name: str) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The ``pose_cells`` and ``experience_map`` sections of bench/settings/``name``.yaml: its own
+    when it has them (the paper's settings), else the default's, derived from its ``platform``."""
+    data = load_settings(name)
+    if "pose_cells" in data:
+        return data["pose_cells"], data["experience_map"]
+    cfg = load_config("default", {"platform": data["platform"]})
+    return cfg.pose_cells.model_dump(), cfg.experience_map.model_dump()

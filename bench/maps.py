@@ -7,8 +7,8 @@ Each lever of bench/settings/levers.yaml is measured ALONE against the paper pro
   API's cores (the same templates and poses as a lossless ``neoslam run``): APE of the
   experience-map trajectory after SE(2) alignment, odometry's APE, closure precision / recall;
 * the TU Chemnitz corridor (bench/tuc_corridor.py, back end only): map error vs odometry's;
-* Nordland summer -> winter (bench/nordland.py) through B, C, D, and the precision target
-  (``--nordland-target``, bench/settings/nordland.yaml, also written into e2e.json).
+* Nordland summer -> winter (bench/nordland.py) through B, C, D (the levers of the round before the
+  calibrated default; the default itself is measured by bench/generalisation.py).
 
 A's features are computed once per data set and cached in ``$NEOSLAM_CACHE`` (default
 ``/tmp/neoslam_maps``), never in the repository; C's cells are cached per (B, C) configuration.
@@ -276,65 +276,6 @@ def nordland_ceiling(data: dict[str, Any]) -> dict[str, Any]:
     return res
 
 
-def _nordland_stream(svcs: list[dict], offset: int, centre: int) -> list[dict]:
-    """The real A, B (centred over ``centre`` frames), C and D per parameter set on one subset."""
-    return nordland.run_frontend("efficientnet_lite0", NORDLAND["step"], svcs, tolerance=NORDLAND["tolerance"],
-                                 neocortex="tm", centre_window=centre, min_std=NORDLAND["min_std"], offset=offset)
-
-
-def nordland_target() -> dict[str, Any]:
-    """The Nordland precision target with bench/settings/nordland.yaml through the real A, B, C
-    (Temporal Memory) and D, on the test protocol's subset (every 8th thumbnail, offset 0) and on the
-    validation subset the settings were chosen on (offset 4: other thumbnails of the same route);
-    each part of the settings left out in turn, and the neighbouring settings (calibration
-    quantile, margin, sequence length) on both subsets."""
-    settings = nordland.map_settings()
-    pr = ("closures", "correct", "precision", "recall")
-    sv, centre = settings["spatial_view"], settings["centre_window"]
-    without = {"union_normalised": {**sv, "union_normalised": False}, "theta_margin": {**sv, "theta_margin": 0.0},
-               "sequence": {**sv, "sequence": {**sv["sequence"], "length": 0}},
-               "min_gap": {k: v for k, v in sv.items() if k != "min_gap_fraction"},
-               "calibration_quantile_98": {k: v for k, v in sv.items() if k != "calibration_quantile"}}
-    grid = [(q, m, n) for q in (95.0, 98.0, 99.0) for m in (0.0, 5.0, 10.0) for n in (0, 1, 2)]
-    grid_svcs = [{**sv, "calibration_quantile": q, "theta_margin": m, "sequence": {**sv["sequence"], "length": n}}
-                 for q, m, n in grid]
-    target = {"precision_min": 0.9, "recall_min": 0.2}
-    res: dict[str, Any] = {"settings": load_settings("nordland"), "target": target}
-    for name, offset in (("test", 0), ("validation", 4)):
-        main, *rest = _nordland_stream([sv, *without.values(), *grid_svcs], offset, centre)
-        res[name] = {**{k: main[k] for k in (*pr, "places", "theta_sigma_calibrated")}, "svc": main["svc"],
-                     "neocortex": main["neocortex"],
-                     "reached": bool((main["precision"] or 0) >= target["precision_min"]
-                                     and main["recall"] >= target["recall_min"])}
-        res[f"{name}_without"] = {k: {kk: r[kk] for kk in pr}
-                                  for k, r in zip(without, rest[:len(without)], strict=True)}
-        (centred_100,) = _nordland_stream([sv], offset, 100)
-        res[f"{name}_without"]["centre_window_30 (100 instead)"] = {kk: centred_100[kk] for kk in pr}
-        res[f"{name}_grid"] = [{"calibration_quantile": q, "theta_margin": m, "sequence_length": n,
-                                **{kk: r[kk] for kk in pr}}
-                               for (q, m, n), r in zip(grid, rest[len(without):], strict=True)]
-        print(name, json.dumps(res[name]), flush=True)
-    # the rule the settings were chosen by: the highest precision on the validation subset among the
-    # grid's settings that reach recall 0.2 there
-    best = max((g for g in res["validation_grid"] if g["recall"] >= target["recall_min"]),
-               key=lambda g: g["precision"] or 0)
-    res["validation_choice"] = {k: best[k] for k in ("calibration_quantile", "theta_margin", "sequence_length")}
-    res["validation_choice_is_map_settings"] = res["validation_choice"] == {
-        "calibration_quantile": sv["calibration_quantile"], "theta_margin": sv["theta_margin"],
-        "sequence_length": sv["sequence"]["length"]}
-    return res
-
-
-def e2e_with_nordland_target(e2e: dict[str, Any], target: dict[str, Any]) -> dict[str, Any]:
-    """e2e.json's ``targets_issue14`` with the Nordland row (from maps.json ``nordland_target``)."""
-    t = e2e.setdefault("targets_issue14", {})
-    t["nordland_precision_min"], t["nordland_recall_min"] = target["target"]["precision_min"], target["target"]["recall_min"]
-    t["nordland"] = {k: target["test"][k] for k in ("precision", "recall", "closures", "correct", "places")}
-    t["nordland"]["measured_by"] = "bench/maps.py --nordland-target (maps.json nordland_target)"
-    t.setdefault("reached", {})["nordland"] = target["test"]["reached"]
-    return e2e
-
-
 def tuc_levers(tuc_levers: dict[str, Any]) -> dict[str, Any]:
     """Each TUC lever (sections on top of bench/settings/tuc_paper.yaml) alone on the corridor."""
     paper = load_settings("tuc_paper")
@@ -357,9 +298,6 @@ def main() -> None:
     ap.add_argument("--tuc", action="store_true", help="the TUC corridor levers instead")
     ap.add_argument("--nordland-ceiling", action="store_true",
                     help="where Nordland's place information is lost (A, B; summer only vs the stream)")
-    ap.add_argument("--nordland-target", action="store_true",
-                    help="the Nordland precision target with bench/settings/nordland.yaml (also into the "
-                         "e2e.json beside --out)")
     args = ap.parse_args()
     lv = levers()
 
@@ -367,13 +305,7 @@ def main() -> None:
     out = Path(args.out)
     if out.exists():
         results = json.loads(out.read_text())
-    if args.nordland or args.tuc or args.nordland_ceiling or args.nordland_target:
-        if args.nordland_target:
-            results["nordland_target"] = nordland_target()
-            e2e_path = out.parent / "e2e.json"
-            if e2e_path.exists():
-                e2e_path.write_text(json.dumps(e2e_with_nordland_target(json.loads(e2e_path.read_text()),
-                                                                        results["nordland_target"]), indent=2))
+    if args.nordland or args.tuc or args.nordland_ceiling:
         if args.nordland_ceiling:
             results["nordland_ceiling"] = nordland_ceiling(nordland_inputs())
             print(json.dumps(results["nordland_ceiling"], indent=1))
@@ -382,7 +314,7 @@ def main() -> None:
             results["nordland"] = [
                 {k: r[k] for k in ("closures", "correct", "precision", "recall", "svc", "proj")}
                 for proj in lv["nordland"]["projector"]
-                for r in run_nordland(proj, [nordland.to_calibrate(sv) for sv in lv["nordland"]["spatial_view"]], data_n)]
+                for r in run_nordland(proj, [{"theta_sigma": None, **sv} for sv in lv["nordland"]["spatial_view"]], data_n)]
         if args.tuc:
             results["tuc_levers"] = tuc_levers(lv["tuc"])
         out.write_text(json.dumps(results, indent=2))

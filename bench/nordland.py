@@ -9,8 +9,8 @@ summer pass; recall = correct closures / winter frames. Protocol (docs/frontend.
 ``step``-th thumbnail; places where either season's frame is featureless (grey-level std below
 ``min_std``: tunnels, night) left out of both passes; ``theta_sigma`` None in a parameter set:
 calibrated on the summer pass alone (a percentile of the overlaps between summer frames more than
-``tolerance`` apart). The settings of the precision target: bench/settings/nordland.yaml.
-Used by bench/frontend.py, bench/maps.py and tests/test_frontend_nordland.py.
+``tolerance`` apart). The protocol's constants: bench/settings/nordland.yaml.
+Used by bench/frontend.py, bench/maps.py, bench/streams.py and tests/test_frontend_nordland.py.
 """
 
 from __future__ import annotations
@@ -20,27 +20,11 @@ from typing import Any
 
 import cv2
 import numpy as np
-from bench_settings import data_root, load_settings
+from bench_settings import data_root
 
 from neoslam_stream.algorithms.frontend import FrontEnd
 
 DATA = data_root() / "nordland_64x32"
-
-
-def map_settings() -> dict[str, Any]:
-    """bench/settings/nordland.yaml as the protocol runs it: B's ``centre_window`` and D's
-    parameter set ``spatial_view`` with the deferred keys that :func:`resolve_params` resolves."""
-    s = load_settings("nordland")
-    p = s["protocol"]
-    sv = to_calibrate(s["spatial_view"], calibration_quantile=p["theta_sigma_quantile"],
-                      min_gap_fraction=p["min_gap_fraction"])
-    return {"centre_window": s["projector"]["centre_window"], "spatial_view": sv}
-
-
-def to_calibrate(params: dict, **deferred: Any) -> dict:
-    """D's parameter set ``params`` (a spatial_view section) with theta_sigma left to the
-    calibration unless it sets one, and the ``deferred`` keys of :func:`resolve_params`."""
-    return {"theta_sigma": None, **deferred, **params}
 
 
 def load_frames(step: int, limit: int | None = None, min_std: float | None = None,

@@ -24,7 +24,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import tuc_corridor as tuc  # noqa: E402
-from bench_settings import load_settings  # noqa: E402
+from bench_settings import back_end_sections, load_settings  # noqa: E402
 from timing import p50  # noqa: E402
 from tuc_corridor import first_point_error, first_point_rotated_error  # noqa: E402
 
@@ -86,7 +86,7 @@ def main() -> None:
         print(key, res[key], flush=True)
     if tuc.DATA.is_dir():
         s = load_settings("tuc")
-        r = tuc.run(s["pose_cells"], s["experience_map"], **s["protocol"])
+        r = tuc.run(*back_end_sections("tuc"), **s["protocol"])
         res.update({"tuc_odometry_mean_m": r["odometry_mean_m"], "tuc_map_mean_m": r["map_mean_m"],
                     "tuc": {k: v for k, v in r.items() if not hasattr(v, "shape")}, "tuc_settings": s})
         res["tuc"]["alignment"] = "rigid 2-D least squares (rotation + translation), the same for both"

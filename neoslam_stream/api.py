@@ -93,7 +93,8 @@ class _SLAM:
     def _make_front_end(self, config: Any) -> Any:
         raise NotImplementedError
 
-    def _template(self, data: dict[str, Any], frame: int) -> tuple[dict[str, Any] | None, FrontEndResult | None]:
+    def _template(self, data: dict[str, Any], frame: int,
+                  stamp: float) -> tuple[dict[str, Any] | None, FrontEndResult | None]:
         raise NotImplementedError
 
     def step(self, image: np.ndarray | bytes, odometry: Odometry | None = None, stamp: float | None = None,
@@ -114,7 +115,7 @@ class _SLAM:
 
         def front(res: StepResult) -> tuple[float, float, float | None] | None:
             validate_data("image", data)
-            res.template, res.front = self._template(data, res.frame)
+            res.template, res.front = self._template(data, res.frame, res.stamp)
             if self.camera_odometry is not None:
                 return self.camera_odometry.on_frame(camera_pixels(data), res.stamp)
             return None
@@ -197,8 +198,15 @@ class _SLAM:
     def info(self) -> dict[str, Any]:
         """Facts about the cores (backbone that ran, templates, experiences...)."""
         out: dict[str, Any] = {}
-        if isinstance(self.front_end, FrontEnd) and "extractor" in self.front_end.__dict__:
-            out["A"] = {"backbone": self.front_end.extractor.backbone}
+        if isinstance(self.front_end, FrontEnd):
+            if "extractor" in self.front_end.__dict__:
+                out["A"] = {"backbone": self.front_end.extractor.backbone}
+            d = self.front_end.spatial_view
+            out["D"] = {"intervals": d.n_intervals, "templates": d.n_templates}
+            if d.config.calibration.enabled:  # what the run settled on
+                out["D"]["calibration"] = d.calibration.report()
+        elif self.front_end.config.calibration.enabled:
+            out["local_view"] = {"calibration": self.front_end.calibration.report()}
         if self.back_end is not None:
             out["pose_cells"] = self.back_end.pose_cells.info()
             out["experience_map"] = {"experiences": self.back_end.experience_map.n_experiences}
@@ -238,10 +246,11 @@ class NeoSLAM(_SLAM):
     def _make_front_end(self, config: Any) -> FrontEnd:
         return FrontEnd(config.front_end())
 
-    def _template(self, data: dict[str, Any], frame: int) -> tuple[dict[str, Any] | None, FrontEndResult | None]:
+    def _template(self, data: dict[str, Any], frame: int,
+                  stamp: float) -> tuple[dict[str, Any] | None, FrontEndResult | None]:
         if not self.front_end.keep(frame):
             return None, None
-        front = self.front_end.step(decode_rgb(data), frame)
+        front = self.front_end.step(decode_rgb(data), frame, stamp)
         return front.template, front
 
     def step_cells(self, cells: np.ndarray, odometry: Odometry | None = None, stamp: float | None = None,
@@ -249,7 +258,7 @@ class NeoSLAM(_SLAM):
         """A frame given by C's winner cells (a recording of C's output, when A, B and C need not
         run again): D and the back end, as :meth:`step` runs them."""
         def front(res: StepResult) -> None:
-            res.template = self.front_end.template(np.asarray(cells))
+            res.template = self.front_end.template(np.asarray(cells), res.stamp)
 
         return self._step(front, odometry, stamp, frame)
 
@@ -260,10 +269,11 @@ class RatSLAM(_SLAM):
     pipeline = "ratslam"
 
     def _make_front_end(self, config: Any) -> LocalViewFrontEnd:
-        return LocalViewFrontEnd(config.local_view)
+        return LocalViewFrontEnd(config.local_view, config.platform)
 
-    def _template(self, data: dict[str, Any], frame: int) -> tuple[dict[str, Any] | None, FrontEndResult | None]:
-        return self.front_end.template(camera_pixels(data)), None
+    def _template(self, data: dict[str, Any], frame: int,
+                  stamp: float) -> tuple[dict[str, Any] | None, FrontEndResult | None]:
+        return self.front_end.template(camera_pixels(data), stamp), None
 
 
 __all__ = ["NeoSLAM", "RatSLAM", "StepResult"]

@@ -12,16 +12,16 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, Field, field_validator
+from pydantic import BaseModel, Field, field_validator, model_validator
 
 from .algorithms.backend import BackEndConfig, PoseCellStageConfig
+from .algorithms.calibration import PlatformConfig
 from .algorithms.features import FeatureConfig
-from .algorithms.frontend import FrontEndConfig
+from .algorithms.frontend import FrontEndConfig, LocalViewFrontEndConfig
 from .algorithms.neocortex import NeocortexConfig
 from .algorithms.oracle import OracleConfig
 from .algorithms.projector import ProjectorConfig
 from .algorithms.ratslam.experience_map import ExperienceMapConfig
-from .algorithms.ratslam.local_view import LocalViewConfig
 from .algorithms.ratslam.visual_odometry import VisualOdometryConfig
 from .algorithms.spatial_view import SpatialViewConfig
 from .runtime.config import ConfigError, RunConfig, load_yaml_config
@@ -72,13 +72,29 @@ class FullRunConfig(RunConfig):
     spatial_view: SpatialViewConfig = Field(default_factory=SpatialViewConfig)
     pose_cells: PoseCellStageConfig = Field(default_factory=PoseCellStageConfig)
     experience_map: ExperienceMapConfig = Field(default_factory=ExperienceMapConfig)
-    local_view: LocalViewConfig = Field(default_factory=LocalViewConfig)
+    local_view: LocalViewFrontEndConfig = Field(default_factory=LocalViewFrontEndConfig)
     visual_odometry: VisualOdometryConfig = Field(default_factory=VisualOdometryConfig)
     #: the oracle front end of `neoslam run --oracle-templates` (template ids from ground truth)
     oracle: OracleConfig = Field(default_factory=OracleConfig)
     #: wheel: odometry from the source; visual: RatSLAM's visual odometry stage
     odometry: str = Field("wheel", pattern="^(wheel|visual)$")
     ros2_out: Ros2OutConfig = Field(default_factory=Ros2OutConfig)
+    #: what you know about your robot and its world (speed, shortest loop, area): the physical
+    #: quantities from which the calibrated decisions take their scales (docs/mapping.md)
+    platform: PlatformConfig = Field(default_factory=PlatformConfig)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _derived_back_end(cls, data: Any) -> Any:
+        """``pose_cells: derived`` / ``experience_map: derived``: the section from the platform's
+        physical quantities (algorithms.backend.derived_back_end; docs/mapping.md)."""
+        if not isinstance(data, dict) or "derived" not in (data.get("pose_cells"), data.get("experience_map")):
+            return data
+        from .algorithms.backend import derived_back_end
+
+        platform = data.get("platform") or {}
+        derived = derived_back_end(**PlatformConfig(**platform).model_dump()) if isinstance(platform, dict) else {}
+        return {**data, **{k: derived[k] for k in ("pose_cells", "experience_map") if data.get(k) == "derived"}}
 
     @field_validator("source")
     @classmethod
@@ -91,7 +107,8 @@ class FullRunConfig(RunConfig):
     def front_end(self) -> FrontEndConfig:
         """The NeoSLAM front end's sections (the same objects, not copies)."""
         return FrontEndConfig.model_construct(features=self.features, projector=self.projector,
-                                              neocortex=self.neocortex, spatial_view=self.spatial_view)
+                                              neocortex=self.neocortex, spatial_view=self.spatial_view,
+                                              platform=self.platform)
 
     def back_end(self) -> BackEndConfig:
         """The back end's sections (the same objects, not copies)."""

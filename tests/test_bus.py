@@ -84,3 +84,38 @@ def test_queue_interleaves_topics_in_arrival_order():
 def test_rejects_zero_capacity():
     with pytest.raises(ValueError):
         InputQueue({"a": 0}, lossless=False)
+
+
+def test_strict_inputs_take_a_stream_only_as_its_producer_sent_it(linked_buses):
+    """A lossless run over hosts: each put carries its frame and the producer's previous one
+    (bus.LinkTag). A hole (puts lost on a link) closes the topic; an older epoch is refused."""
+    from neoslam_stream.runtime.bus import NO_FRAME, LinkTag
+
+    assert LinkTag.unpack(LinkTag(7, 5, 3).pack()) == LinkTag(7, 5, 3)
+    assert LinkTag.unpack(b"not a tag") is None and LinkTag.unpack(None) is None
+    pub_bus, sub_bus = linked_buses(lossless=True)
+    q = InputQueue({"x": 50}, lossless=True, strict=True)
+    sub_bus.subscribe("x", q)
+    time.sleep(0.5)
+    # frames 0, 1, 3 (2 refused upstream: the producer never put it, so 3 says "after 1")
+    for f in (0, 1, 3):
+        pub_bus.put("x", f.to_bytes(4, "little"), frame=f)
+    _wait_delivery(q, 3)
+    assert q.stats["x"].received == 3 and not q.holes
+    # a put lost on the way: the next one shows the hole, and nothing after it is taken
+    pub_bus._prev["x"] = 4  # as if frame 4 had been put and lost
+    for f in (5, 6):
+        pub_bus.put("x", f.to_bytes(4, "little"), frame=f)
+    time.sleep(0.5)
+    assert q.holes == {"x": [3, 4, 5]} and q.stats["x"].received == 3
+    # a new queue (a restarted consumer) of epoch 1 takes a restarted producer's stream (its
+    # first put follows nothing) and refuses what an old producer of epoch 0 still sends
+    q1 = InputQueue({"x": 50}, lossless=True, strict=True, epoch=1)
+    q1.put("x", b"old", 0.0, LinkTag(7, 6, 0))
+    q1.put("x", b"new", 0.0, LinkTag(3, NO_FRAME, 1))
+    q1.put("x", b"new", 0.0, LinkTag(4, 3, 1))
+    assert q1.refused_stale == 1 and q1.stats["x"].received == 2 and not q1.holes
+    # untagged puts (a tool, an older producer) and real-time queues are not checked
+    q2 = InputQueue({"x": 5}, lossless=False)
+    q2.put("x", b"a", 0.0, LinkTag(9, 1, 5))
+    assert q2.stats["x"].received == 1

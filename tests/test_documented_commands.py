@@ -45,6 +45,7 @@ RUN = {
     "neoslam config show default",
     "neoslam config show irat2011",
     "neoslam view runs/monday --save monday.rrd",
+    "neoslam evaluate runs/monday --gt data/myrun/groundtruth.tum --gt-align-start",
 }
 VALIDATE = {
     "neoslam run",
@@ -56,6 +57,7 @@ VALIDATE = {
     "neoslam run --stages rest --run-id field1 --router-listen tcp/0.0.0.0:7447",
     "neoslam run --stages A,B --run-id field1 --connect tcp/ROBOT:7447",
     "neoslam run -c irat2011 -p path=data/irat_aus_28112011.bag",
+    "neoslam run -c irat2011 -p path=data/irat_aus_28112011.bag -p groundtruth_topic=null",
     "neoslam run --realtime --source zenoh-ros2 -p image_topic=/camera/image_raw "
     "-p odom_topic=/odom -p 'connect=[\"tcp/192.168.1.5:7447\"]'",
     "neoslam run --realtime --source zenoh-ros2 -p image_topic=/camera/image_raw -p odom_topic=/odom "

@@ -1,5 +1,7 @@
 """The real NeoSLAM pipeline end to end through real processes on the synthetic world."""
 
+from pathlib import Path
+
 import pytest
 
 from neoslam_stream.algorithms.features import FeatureConfig, VisualFeatureExtractor
@@ -8,6 +10,8 @@ from neoslam_stream.evaluation import evaluate_run
 from neoslam_stream.launch import run
 
 pytestmark = pytest.mark.zenoh
+REF = Path(__file__).resolve().parent / "data" / "default_profile_1000"
+FRAMES = 1000
 
 
 def _cfg(topology: str, **source):
@@ -25,11 +29,15 @@ def test_feature_batches_equal_single_frames():
 
 
 @pytest.mark.slow
-def test_map_beats_odometry_on_the_synthetic_world(tmp_path):
-    # two laps: the second revisits every place of the first, loop closures must undo the drift
-    # (the monolithic topology computes the same rows: tests/test_default_run.py)
-    res = run(_cfg("pipeline", laps_cw=2, laps_ccw=0), tmp_path)
+def test_the_default_through_processes_equals_the_in_process_reference(tmp_path):
+    # one process per stage gives the rows and map of tests/data/default_profile_1000, which
+    # tests/test_map_quality.py checks the in-process API against: the nodes hand D and the local
+    # view each frame's stamp and the platform, as the API does. Its closures undo the drift.
+    from test_default_run import FILES, _same
+
+    res = run(_cfg("pipeline", frames=FRAMES), tmp_path)
     assert res.report["loss"] == 0.0 and res.report["errors"] == 0
+    assert _same(tmp_path, REF) == dict.fromkeys(FILES, True)
     ev = evaluate_run(tmp_path, plot=False)
     assert ev["loop_closures"]["closures"] > 0
     assert ev["trajectory_ape"]["mean_m"] < ev["odometry_ape"]["mean_m"], ev

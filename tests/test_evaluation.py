@@ -169,3 +169,73 @@ def test_online_floor_is_odometry_until_the_first_return_then_exact():
     assert online_floor(gt, gt, radius=0.5, min_gap_s=5.0)["ape_mean_m"] == pytest.approx(0.0, abs=1e-12)
     never = online_floor(gt, odo, radius=0.5, min_gap_s=50.0)
     assert never["first_return_frame"] == 20 and never["first_return_s"] is None
+
+
+def _epoch_run(tmp_path: Path) -> tuple[Path, Path, float]:
+    """A run folder whose stamps are epoch seconds (a 2011 bag) and a ground truth of the same path
+    from 0 s, moved rigidly; returns the folder, the ground-truth file and the clocks' difference."""
+    start = 1322463452.25
+    t = np.arange(40) * 0.25
+    xy = np.column_stack([np.cos(t), np.sin(2 * t)])
+    run = tmp_path / "run"
+    run.mkdir()
+    write_tum(run / "trajectory.tum", np.column_stack([start + t, xy, np.zeros(40)]))
+    th = 0.5
+    R = np.array([[math.cos(th), -math.sin(th)], [math.sin(th), math.cos(th)]])
+    gt = tmp_path / "gt.tum"
+    write_tum(gt, np.column_stack([t, xy @ R.T + [4.0, 1.0], np.zeros(40)]))
+    return run, gt, start
+
+
+def test_evaluate_names_both_time_ranges_when_the_stamps_do_not_overlap(tmp_path, capsys):
+    run, gt, start = _epoch_run(tmp_path)
+    assert main(["evaluate", str(run), "--gt", str(gt)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err
+    assert f"{start:.3f} .. {start + 39 * 0.25:.3f} s" in err  # the run's range
+    assert f"0.000 .. {39 * 0.25:.3f} s" in err  # the ground truth's
+    assert "--gt-offset SECONDS" in err and "--gt-align-start" in err
+    assert f"--gt-offset {start:.3f}" in err  # the difference of the first stamps, offered
+    assert not (run / "evaluation.json").exists()
+
+
+def test_gt_offset_and_align_start_shift_the_ground_truth(tmp_path, capsys):
+    run, gt, start = _epoch_run(tmp_path)
+    by_offset = evaluate_run(run, gt, plot=False, gt_offset=start)
+    assert by_offset["ground_truth_offset_s"] == start
+    assert by_offset["trajectory_ape"]["max_m"] < 1e-5  # the same path, moved rigidly: every pose paired
+    aligned = evaluate_run(run, gt, plot=False, gt_align_start=True)
+    assert aligned["ground_truth_offset_s"] == pytest.approx(start, abs=1e-6)
+    assert aligned["trajectory_ape"]["max_m"] < 1e-5
+    # an offset that still leaves the clocks apart is the same clear error, naming the shift
+    from neoslam_stream.evaluation import StampMismatch
+
+    with pytest.raises(StampMismatch, match="shifted by 100.000 s"):
+        evaluate_run(run, gt, plot=False, gt_offset=100.0)
+    assert main(["evaluate", str(run), "--gt", str(gt), "--gt-align-start"]) == 0
+    assert "shifted by" in capsys.readouterr().out
+    # the two ways exclude each other
+    with pytest.raises(SystemExit):
+        main(["evaluate", str(run), "--gt", str(gt), "--gt-align-start", "--gt-offset", "3"])
+
+
+def test_evaluate_says_what_each_metric_measures(capsys):
+    from neoslam_stream.cli import print_evaluation
+    from neoslam_stream.evaluation import METRICS
+
+    ev = {"trajectory_ape": {"mean_m": 0.159, "rmse_m": 0.2, "max_m": 0.41},
+          "odometry_ape": {"mean_m": 5.09, "rmse_m": 6.0, "max_m": 13.0},
+          "map_paper": {"mean_m": 7.48, "max_m": 12.5}, "map_nodes": 154}
+    print_evaluation(ev)
+    lines = capsys.readouterr().out.splitlines()
+    ape_line = next(line for line in lines if "0.159 m" in line)
+    paper_line = next(line for line in lines if "7.480 m" in line)
+    assert "SE(2)-aligned" in ape_line and "paper metric" in paper_line and "154" in paper_line
+    # each figure is followed by the line that says what it measures and whether to quote it
+    assert lines[lines.index(ape_line) + 1].strip() == METRICS["ape"]
+    assert lines[lines.index(paper_line) + 1].strip() == METRICS["paper"]
+    assert "NeoSLAM" in METRICS["paper"] and "no rotation" in METRICS["paper"]
+    assert "quote" in METRICS["ape"] and "quote" in METRICS["paper"]
+    # docs/evaluation.md explains both and says which to quote
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "evaluation.md").read_text()
+    assert "Which figure to quote" in doc

@@ -78,7 +78,7 @@ class FakeBus:
     def __init__(self) -> None:
         self.out: list[tuple[str, bytes]] = []
 
-    def put(self, topic: str, payload: bytes) -> None:
+    def put(self, topic: str, payload: bytes, frame: int | None = None) -> None:
         self.out.append((topic, payload))
 
 

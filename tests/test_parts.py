@@ -29,11 +29,13 @@ TINY = light_config("lossless", {"kind": "synthetic", "params": {"seed": 0, "fra
 def test_stage_lists_are_parsed_and_checked():
     assert parse_stages("A, B") == ["A", "B"]
     assert parse_stages("rest") == ["rest"]
+    assert parse_stages("A,B,source") == ["A", "B", "source"]  # the source on this host too
     for bad in ("", "rest,A"):
         with pytest.raises(ValueError):
             parse_stages(bad)
     groups = group_workers(build_plan(load_config("default")), "pipeline")
     assert check_selection(groups, ["B", "A"]) == ["A", "B"]  # the plan's order
+    assert check_selection(groups, ["A", "B", "source"]) == ["A", "B"]  # the source is no worker
     with pytest.raises(RunError, match="unknown stage"):
         check_selection(groups, ["A", "Z"])
     with pytest.raises(RunError, match="experience_map"):  # the recorder is no process of its own

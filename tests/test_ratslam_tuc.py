@@ -8,7 +8,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 
 import tuc_corridor as tuc  # noqa: E402
-from bench_settings import load_settings  # noqa: E402
+from bench_settings import back_end_sections, load_settings  # noqa: E402
 from tuc_corridor import first_point_rotated_error  # noqa: E402
 
 pytestmark = pytest.mark.skipif(not tuc.DATA.is_dir(), reason="../shared/data/tuc_slam_odom_loops absent")
@@ -16,7 +16,7 @@ pytestmark = pytest.mark.skipif(not tuc.DATA.is_dir(), reason="../shared/data/tu
 
 def test_experience_map_beats_odometry_on_real_drift():
     s = load_settings("tuc")
-    r = tuc.run(s["pose_cells"], s["experience_map"], **s["protocol"])
+    r = tuc.run(*back_end_sections("tuc"), **s["protocol"])
     assert r["recognised_frames"] > 50  # the loop candidates do produce revisits
     # The mapping target: the map's mean error at most 30 % of odometry's (both trajectories
     # aligned the same way to ground truth). Odometry alone drifts by ~50 m over the run's

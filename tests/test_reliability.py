@@ -84,6 +84,11 @@ def test_bad_input_corpus_through_the_running_pipeline(tmp_path):
     # (the broken odometry rows sit on good frames)
     assert set(man.bad_odometry) <= set(man.good)
     assert rep["frames_out"] == len(man.good) - len(man.bad_odometry)
+    # ... and the report says why those frames are lost, not "in flight or lost while restarting"
+    breakdown = rep["loss_breakdown"]
+    assert breakdown["unattributed"] == 0, breakdown
+    assert sum(n for cause, n in breakdown["source"].items() if "without odometry" in cause) == \
+        len(man.bad_odometry), breakdown
 
 
 def test_truncated_bag_ends_the_stream_cleanly(tmp_path):

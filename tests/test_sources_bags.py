@@ -183,3 +183,39 @@ def test_ros2_bag_pose_frames_with_gps_ground_truth():
     gt = np.array([f.groundtruth for f in frames if f.groundtruth is not None])
     # the lake GPS at ~1 Hz: consecutive fixes of a boat a few metres apart, never a 0/0 jump
     assert np.max(np.linalg.norm(np.diff(gt[:, :2], axis=0), axis=1)) < 50
+
+
+def test_a_ground_truth_topic_the_bag_lacks_is_a_warning_not_a_failure(tmp_path, caplog):
+    """A user's own bag with the irat2011 topics but no /overhead/pose: the frames come without
+    ground truth, and the source says so once (log and info(), which report.json keeps)."""
+    from rosbags.rosbag1 import Writer
+
+    ts = _types("ROS1_NOETIC")
+    T = ts.types
+    path = tmp_path / "mine.bag"
+    with Writer(path) as w:
+        co = w.add_connection("/odom", "nav_msgs/msg/Odometry", typestore=ts)
+        ci = w.add_connection("/cam/image/compressed", "sensor_msgs/msg/CompressedImage", typestore=ts)
+        msgs = [(t, co, _odom(ts, t, v, wz, seq=0), "nav_msgs/msg/Odometry")
+                for t, v, wz in zip(ODOM_T, ODOM_V, ODOM_W, strict=True)]
+        jpeg = cv2.imencode(".jpg", np.full((16, 20, 3), 128, np.uint8))[1].ravel()
+        msgs += [(t, ci, T["sensor_msgs/msg/CompressedImage"](header=_header(ts, t, seq=0), format="jpeg", data=jpeg),
+                  "sensor_msgs/msg/CompressedImage") for t in FRAME_T]
+        for t, c, m, typ in sorted(msgs, key=lambda m: m[0]):
+            w.write(c, int(round(t * 1e9)), ts.serialize_ros1(m, typ))
+    with caplog.at_level("WARNING"):
+        src = BagSource(str(path), image_topic="/cam/image/compressed", odom_topic="/odom",
+                        groundtruth_topic="/overhead/pose")
+        frames = list(src)
+    assert len(frames) == len(FRAME_T) and all(f.groundtruth is None for f in frames)
+    _check_odometry(frames)  # the rest of the bag is read as before
+    (note,) = src.info()["warnings"]
+    assert "'/overhead/pose'" in note and "without ground truth" in note and "groundtruth_topic=null" in note
+    assert [r.getMessage() for r in caplog.records if "/overhead/pose" in r.getMessage()] == [note]
+    assert src.errors == {}  # a warning, not an error
+    # named as null on purpose: no warning at all
+    quiet = BagSource(str(path), image_topic="/cam/image/compressed", odom_topic="/odom", groundtruth_topic=None)
+    assert quiet.info()["warnings"] == [] and len(list(quiet)) == len(FRAME_T)
+    # the ground-truth topic as the only one (frames from it) is still an error: nothing to run on
+    with pytest.raises(ValueError, match="groundtruth topic '/overhead/pose' not in"):
+        BagSource(str(path), groundtruth_topic="/overhead/pose")

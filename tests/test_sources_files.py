@@ -69,3 +69,33 @@ def test_video_limits_and_errors(tmp_path):
         VideoSource(str(tmp_path / "x.avi"))
     with pytest.raises(FileNotFoundError):
         VideoSource(str(tmp_path / "none.avi"))
+
+
+def test_an_odometry_row_with_the_previous_stamp_is_refused_with_its_cause(tmp_path, caplog):
+    """Two rows with one stamp would mean motion in no time (dt = 0): the second is refused,
+    counted once and logged once with its cause; its image is still published, without motion."""
+    _images(tmp_path / "images", 4)
+    (tmp_path / "odometry.tum").write_text("0.0 0 0 0 0 0 0 1\n0.1 1 0 0 0 0 0 1\n0.1 1 0 0 0 0 0 1\n"
+                                           "0.2 2 0 0 0 0 0 1\n")
+    with caplog.at_level("WARNING"):
+        src = ImageFolderSource(str(tmp_path))
+        frames = list(src)
+    assert len(frames) == 4
+    assert [f.odom is None for f in frames] == [False, False, True, False]
+    assert all(f.odom[2] > 0 for f in frames[1:] if f.odom is not None)  # no motion in zero time
+    assert frames[3].odom == pytest.approx((10.0, 0.0, 0.1))  # from row 1 to row 3
+    assert list(src.errors.values()) == [1]
+    cause = next(iter(src.errors))
+    assert "odometry row 2" in cause and "is not after the previous" in cause
+    assert sum(cause in r.getMessage() for r in caplog.records) == 1
+
+
+def test_images_beyond_a_short_odometry_file_are_counted(tmp_path):
+    """An odometry file with fewer rows than images: the images beyond it have no motion, said
+    once with its cause and counted per image (they used to pass silently)."""
+    _images(tmp_path / "images", 5)
+    (tmp_path / "odometry.tum").write_text("0.0 0 0 0 0 0 0 1\n0.1 1 0 0 0 0 0 1\n0.2 2 0 0 0 0 0 1\n")
+    src = ImageFolderSource(str(tmp_path))
+    frames = list(src)
+    assert [f.odom is None for f in frames] == [False, False, False, True, True]
+    assert list(src.errors.values()) == [2] and "3 rows for 5 images" in next(iter(src.errors))

@@ -155,6 +155,53 @@ class CameraOdometry:
         return vtrans, vrot, dt
 
 
+#: constants of :func:`derived_back_end` (why each value: its docstring)
+CELL_S = 1.0          # a pose cell is the distance driven in this many seconds
+GATE_S = 100.0        # the odometry gate's radius is the distance driven in this many seconds
+GATE_DRIFT = 0.1      # ... plus this many metres per metre driven since the last accepted recognition
+RING_FACTOR = 2.2     # a shortest loop longer than this times the area's extent encloses part of it
+PC_DIM_XY = 21
+EXP_DELTA_PC_THRESHOLD = 2.0
+EXP_LOOPS = 1000
+
+
+def derived_back_end(speed_mps: float = 0.5, shortest_loop_m: float = 10.0, area_m: float = 50.0) -> dict[str, Any]:
+    """The back end's sections (``pose_cells``, ``experience_map``) from what a user knows about the
+    robot, its typical speed, shortest loop and the area's extent (``platform``); the camera rate
+    does not enter, since pose cells and map move with the odometry. Why each rule
+    (docs/mapping.md, "The back end from the platform"):
+
+    * a pose cell is the distance driven in ``CELL_S``, so the packet moves a small fraction of a
+      cell per odometry step at any speed and the experience spacing scales with the robot;
+    * the yaw-rate bias comes from every recognised template (a refused look-alike still measures
+      the heading), with headings compared modulo half a turn unless the shortest loop is a ring:
+      a closed route spanning an extent E is at least 2E long, exactly 2E only when it goes there
+      and back, whose first revisits face the other way; a loop longer than ``RING_FACTOR`` E
+      encloses part of the area, so its revisits face the same way;
+    * the odometry gate's radius is the distance driven in ``GATE_S`` plus ``GATE_DRIFT`` per metre
+      since the last accepted recognition (what the bias-corrected odometry may be off); a gate
+      as wide as the area refuses nothing a right recognition could need: off;
+    * ``EXP_LOOPS`` relaxation sweeps per action, close to the relaxation's fixed point.
+
+    Constants chosen on synthetic worlds 1-4 and the first half of the TUC run.
+    """
+    for name, value in (("speed_mps", speed_mps), ("shortest_loop_m", shortest_loop_m), ("area_m", area_m)):
+        if not (math.isfinite(value) and value > 0):
+            raise InvalidInput(f"{name} must be a positive number, got {value}")
+    radius = speed_mps * GATE_S
+    return {
+        "pose_cells": {
+            "pc_dim_xy": PC_DIM_XY,
+            "pc_cell_x_size": speed_mps * CELL_S,
+            "exp_delta_pc_threshold": EXP_DELTA_PC_THRESHOLD,
+            "odometry_bias": {"enabled": True, "samples_from": "templates",
+                              "bidirectional": bool(shortest_loop_m <= RING_FACTOR * area_m)},
+            "odometry_gate": {"radius_m": radius if radius < area_m else 0.0, "drift": GATE_DRIFT},
+        },
+        "experience_map": {"exp_loops": EXP_LOOPS, "exp_initial_em_deg": 0.0},
+    }
+
+
 class BackEndConfig(BaseModel):
     """The back end's sections, as in a run's config."""
 

@@ -19,6 +19,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from ._config import make_config
+from .calibration import CalibrationConfig, PlatformConfig, RunCalibration
 from .features import FEATURE_DIMS, FeatureConfig, VisualFeatureExtractor
 from .neocortex import Neocortex, NeocortexConfig
 from .projector import BinaryProjector, ProjectorConfig, TorchProjection
@@ -40,6 +41,8 @@ class FrontEndConfig(BaseModel):
     projector: ProjectorConfig = Field(default_factory=ProjectorConfig)
     neocortex: NeocortexConfig = Field(default_factory=NeocortexConfig)
     spatial_view: SpatialViewConfig = Field(default_factory=SpatialViewConfig)
+    #: the robot's physical quantities, from which D's calibrated decisions take their scales
+    platform: PlatformConfig = Field(default_factory=PlatformConfig)
 
     def resolved(self) -> FrontEndConfig:
         """This config with "auto" decided, once for every caller: A's backbone (AlexNet when its
@@ -97,7 +100,7 @@ class FrontEnd:
     @cached_property
     def spatial_view(self) -> SpatialViewCells:
         """D: winner cells -> visual template, loop closure."""
-        return SpatialViewCells(self.config.spatial_view)
+        return SpatialViewCells(self.config.spatial_view, platform=self.config.platform)
 
     def keep(self, frame: int) -> bool:
         """``frame_stride`` s: frames 0, s, 2s, ... are processed, the others removed on purpose."""
@@ -121,21 +124,22 @@ class FrontEnd:
         """C: one frame's on-bits -> its winner cells (one learning step)."""
         return self.neocortex.compute(bits)
 
-    def template(self, cells: np.ndarray) -> dict[str, Any]:
-        """D: one frame's winner cells -> its visual template (``TEMPLATE_KEYS``)."""
-        res = self.spatial_view.compute(cells)
+    def template(self, cells: np.ndarray, stamp: float | None = None) -> dict[str, Any]:
+        """D: one frame's winner cells (and its stamp, seconds) -> its visual template
+        (``TEMPLATE_KEYS``)."""
+        res = self.spatial_view.compute(cells, stamp)
         return {k: res[k] for k in TEMPLATE_KEYS}
 
-    def step_bits(self, bits: np.ndarray) -> FrontEndResult:
+    def step_bits(self, bits: np.ndarray, stamp: float | None = None) -> FrontEndResult:
         """C then D for one frame's on-bits."""
         cells = self.cells(bits)
-        return FrontEndResult(bits, cells, self.template(cells))
+        return FrontEndResult(bits, cells, self.template(cells, stamp))
 
-    def step(self, rgb: np.ndarray, frame: int) -> FrontEndResult | None:
+    def step(self, rgb: np.ndarray, frame: int, stamp: float | None = None) -> FrontEndResult | None:
         """One camera frame; None for a frame that ``frame_stride`` removes."""
         if not self.keep(frame):
             return None
-        return self.step_bits(self.bits_of_frames([rgb])[0])
+        return self.step_bits(self.bits_of_frames([rgb])[0], stamp)
 
     def warm_up(self) -> None:
         """Compile B's, C's and D's kernels before the first frame."""
@@ -144,29 +148,108 @@ class FrontEnd:
         self.spatial_view.warm_up()
 
 
+class LocalViewFrontEndConfig(LocalViewConfig):
+    """The ``local_view`` section: OpenRatSLAM's local-view cells plus the calibrated decision on
+    loop closures (algorithms/calibration.py), the same as D's so that the comparison is fair."""
+
+    calibration: CalibrationConfig = Field(default_factory=CalibrationConfig)
+
+
 class LocalViewFrontEnd:
     """RatSLAM's local-view cells as a front end: a frame -> its visual template. A loop closure is
-    an existing template other than the previous frame's."""
+    an existing template other than the previous frame's.
 
-    def __init__(self, config: LocalViewConfig | None = None, **overrides: Any) -> None:
-        self.cells = LocalViewCells(make_config(LocalViewConfig, config, overrides))
+    With ``calibration.enabled``, a template seen at least a shortest loop ago is recognised only
+    when the run's own statistics say it stands out (as D's closures are); younger templates are
+    matched by OpenRatSLAM's ``vt_match_threshold`` as before, which keeps the template density.
+    """
+
+    def __init__(self, config: LocalViewFrontEndConfig | None = None, platform: PlatformConfig | None = None,
+                 **overrides: Any) -> None:
+        self.config = make_config(LocalViewFrontEndConfig, config, overrides)
+        self.cells = LocalViewCells(self.config)
         self.prev = -1
+        self.frame = 0
+        #: each template's creation stamp and frame
+        self.created: list[tuple[float, int]] = []
+        self.calibration = RunCalibration(self.config.calibration, platform or PlatformConfig())
 
-    def template(self, pixels: np.ndarray) -> dict[str, Any]:
+    def template(self, pixels: np.ndarray, stamp: float | None = None) -> dict[str, Any]:
         """``pixels``: HxW grey or HxWx3 colour, as OpenRatSLAM reads frames."""
+        stamp = float(self.frame if stamp is None else stamp)
         n_before = len(self.cells.templates)
-        vt, rad = self.cells.on_image(pixels)
+        if self.config.calibration.enabled:
+            vt, rad = self._calibrated(pixels, stamp)
+        else:
+            vt, rad = self.cells.on_image(pixels)
+        if len(self.cells.templates) > n_before:
+            self.created.append((stamp, self.frame))
         loop = len(self.cells.templates) == n_before and vt != self.prev
         self.prev = vt
+        self.frame += 1
         return {"id": vt, "relative_rad": rad, "is_loop_closure": bool(loop), "best_interval": -1,
                 "best_score": float(self.cells.last_error)}
+
+    def _calibrated(self, pixels: np.ndarray, stamp: float) -> tuple[int, float]:
+        cells, cal = self.cells, self.calibration
+        cal.on_stamp(stamp)
+        t = cells.view_template(pixels)
+        err, rad = self._errors(t)
+        born = np.array([c[0] for c in self.created], dtype=np.float64)
+        old = np.flatnonzero(born <= stamp - cal.min_gap_s)
+        recent = None if self.prev < 0 else -float(err[self.prev])
+        a = cal.assess(-err[old], born[old], recent) if old.size else None
+        ref = self.created[old[a.best]][1] if a is not None else -1
+        closure = cal.accept(self.frame, ref, a.confidence if a is not None else -np.inf)
+        cal.frame_done()
+        if closure:
+            k = int(old[a.best])
+        else:  # OpenRatSLAM's rule among the templates too young to be a loop closure
+            young = np.setdiff1d(np.arange(err.shape[0]), old)
+            k = int(young[np.argmin(err[young])]) if young.size else -1
+            if k >= 0 and err[k] > self.config.vt_match_threshold:
+                k = -1
+        if k < 0:
+            cells.last_error = float(err.min()) if err.size else float("inf")
+            cells.current_id, cells.relative_rad = cells.add_template(t), 0.0
+        else:
+            cells.last_error = float(err[k])
+            cells.current_id, cells.relative_rad = k, float(rad[k])
+        return cells.current_id, cells.relative_rad
+
+    def _errors(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Every template's mean absolute difference to ``t`` at its best offset, and that offset's
+        relative_rad (the same comparison as OpenRatSLAM's, without its early stop)."""
+        c = self.config
+        temps = self.cells.templates
+        if temps.shape[0] == 0:
+            return np.zeros(0), np.zeros(0)
+        X = c.template_x_size
+        if c.vt_panoramic:
+            offs = list(range(0, X, c.vt_step_match))
+            errs = np.stack([np.abs(t[None] - np.roll(temps, -o, axis=2)).mean(axis=(1, 2)) for o in offs])
+        else:
+            S, W = c.vt_shift_match, X - 2 * c.vt_shift_match
+            offs = list(range(0, 2 * S + 1, c.vt_step_match))
+            cur = t[:, S:S + W]
+            errs = np.stack([np.abs(cur[None] - temps[:, :, o:o + W]).mean(axis=(1, 2)) for o in offs])
+        best = np.argmin(errs, axis=0)
+        rad = np.zeros(temps.shape[0])
+        if c.vt_panoramic:
+            rad = np.array([offs[i] for i in best], dtype=np.float64) / X * 2 * np.pi
+            rad[rad > np.pi] -= 2 * np.pi
+        return errs[best, np.arange(temps.shape[0])], rad
 
     def warm_up(self) -> None:
         self.cells.warm_up()
 
     def state_dict(self) -> dict[str, Any]:
-        return {"lv": self.cells.state_dict(), "prev": self.prev}
+        return {"lv": self.cells.state_dict(), "prev": self.prev, "frame": self.frame,
+                "created": [[s, f] for s, f in self.created], "calibration": self.calibration.state_dict()}
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
         self.cells.load_state_dict(st["lv"])
         self.prev = int(st["prev"])
+        self.frame = int(st.get("frame", 0))
+        self.created = [(float(s), int(f)) for s, f in st.get("created", [])]
+        self.calibration.load_state_dict(st.get("calibration", {}))

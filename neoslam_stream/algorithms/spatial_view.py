@@ -23,6 +23,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from pyroaring import BitMap
 
 from ._config import make_config
+from .calibration import CalibrationConfig, PlatformConfig, RunCalibration
 from .errors import InvalidInput
 from .interval_index import IntervalIndex
 from .sequence import SequenceConfig, SequenceFilter
@@ -48,6 +49,10 @@ class SpatialViewConfig(BaseModel):
     #: theta_margin (the scores are the normalised ones when ``union_normalised``): a place that
     #: looks like many others is refused. 0: off (the paper's rule)
     theta_margin: float = Field(0.0, ge=0)
+    #: closures decided from the run's own statistics instead of theta_sigma and theta_margin
+    #: (algorithms/calibration.py): ranked by the union-normalised score, candidates only from
+    #: places seen a shortest loop ago, evidence over a stretch of travel. Off: the paper's rule
+    calibration: CalibrationConfig = Field(default_factory=CalibrationConfig)
 
     @field_validator("exclude_recent_intervals")
     @classmethod
@@ -69,11 +74,15 @@ class SpatialViewCells:
     docstring gives the rule. The search settings (``exhaustive``, ``sliced``, ``dense_min``) and
     figures (``last_path``, ``last_search``, ``merges``) are the index's: ``cells.index``."""
 
-    def __init__(self, config: SpatialViewConfig | None = None, **overrides: Any) -> None:
+    def __init__(self, config: SpatialViewConfig | None = None, platform: PlatformConfig | None = None,
+                 **overrides: Any) -> None:
         self.config = make_config(SpatialViewConfig, config, overrides)
+        self.platform = platform or PlatformConfig()
         self.index = IntervalIndex(self.config.sdr_size)
         self.unions: list[BitMap] = []
         self.interval_start: list[int] = []
+        #: each interval's first stamp (seconds; the frame number when frames come without stamps)
+        self.interval_stamp: list[float] = []
         self.interval_end: list[int] = []
         self.interval_template: list[int] = []
         self.n_templates = 0
@@ -82,6 +91,8 @@ class SpatialViewCells:
         #: the runner-up of the last frame (interval, score): -1, 0 when there is none
         self.runner_up = (-1, 0)
         self.sequence = SequenceFilter(self.config.sequence)
+        seq = self.config.sequence
+        self.calibration = RunCalibration(self.config.calibration, self.platform, seq.max_step, seq.slack)
 
     @property
     def n_intervals(self) -> int:
@@ -95,12 +106,14 @@ class SpatialViewCells:
             raise InvalidInput(f"SDR indices must lie in [0, {self.config.sdr_size})")
         return np.unique(a.astype(np.int64)).astype(np.int32)
 
-    def compute(self, sdr: np.ndarray) -> dict[str, Any]:
-        """Process y_t; returns template id, loop-closure flag, best interval and score, and the
-        runner-up (``second_interval``, ``second_score``: the best candidate other than k*, -1 and
-        0 when there is none), from which a closure's margin best_score - second_score follows."""
+    def compute(self, sdr: np.ndarray, stamp: float | None = None) -> dict[str, Any]:
+        """Process y_t (``stamp``: its time in seconds, default the frame number); returns template
+        id, loop-closure flag, best interval and score, and the runner-up (``second_interval``,
+        ``second_score``: the best candidate other than k*, -1 and 0 when there is none), from
+        which a closure's margin best_score - second_score follows."""
         cfg = self.config
         y = self._validate(sdr)
+        stamp = float(self.t if stamp is None else stamp)
         y_bm = BitMap(y)
         new_interval = False
         if not self.unions:
@@ -122,10 +135,33 @@ class SpatialViewCells:
             k = self.n_intervals
             self.unions.append(y_bm)
             self.interval_start.append(self.t)
+            self.interval_stamp.append(stamp)
             self.interval_end.append(self.t)
             self.interval_template.append(-1)
             self.index.post(y, k)
             self.index.store_union(k, y)
+        if cfg.calibration.enabled:
+            loop, best, best_score, second, second_score = self._calibrated(y, stamp)
+        else:
+            loop, best, best_score, second, second_score = self._thresholded(y)
+        if loop:
+            template = self.interval_template[best]
+        elif new_interval:
+            template = self.n_templates
+            self.n_templates += 1
+        else:
+            template = self.current_template
+        if new_interval:
+            self.interval_template[-1] = template
+        self.current_template = template
+        self.t += 1
+        return {"id": template, "is_loop_closure": bool(loop), "best_interval": best if loop else -1,
+                "best_score": best_score, "relative_rad": 0.0, "interval": self.n_intervals - 1,
+                "second_interval": second, "second_score": second_score}
+
+    def _thresholded(self, y: np.ndarray) -> tuple[bool, int, Any, int, Any]:
+        """The paper's rule (s > theta_sigma) and the optional margin and sequence rules."""
+        cfg = self.config
         limit = self.n_intervals - cfg.exclude_recent_intervals
         min_gap = cfg.sequence.min_gap_frames
         if min_gap:  # only intervals opened at least min_gap frames ago (sequence.py)
@@ -143,20 +179,30 @@ class SpatialViewCells:
             loop = best_score - second_score >= cfg.theta_margin
         if self.sequence.enabled:  # a candidate is a closure only within a consistent sequence
             loop = self.sequence.check(self.t, self.interval_start[best] if loop else -1)
-        if loop:
-            template = self.interval_template[best]
-        elif new_interval:
-            template = self.n_templates
-            self.n_templates += 1
-        else:
-            template = self.current_template
-        if new_interval:
-            self.interval_template[-1] = template
-        self.current_template = template
-        self.t += 1
-        return {"id": template, "is_loop_closure": bool(loop), "best_interval": best if loop else -1,
-                "best_score": best_score, "relative_rad": 0.0, "interval": self.n_intervals - 1,
-                "second_interval": second, "second_score": second_score}
+        return loop, best, best_score, second, second_score
+
+    def _calibrated(self, y: np.ndarray, stamp: float) -> tuple[bool, int, float, int, float]:
+        """The calibrated decision (algorithms/calibration.py) on the union-normalised scores of
+        the intervals opened at least a shortest loop ago (and outside the omega newest)."""
+        cal = self.calibration
+        cal.on_stamp(stamp)
+        k_all = self.n_intervals
+        limit = min(k_all - self.config.exclude_recent_intervals,
+                    bisect_right(self.interval_stamp, stamp - cal.min_gap_s))
+        best, best_score, second, second_score = -1, 0.0, -1, 0.0
+        a = None
+        if limit > 0:
+            n = len(y)
+            norm = self.index.all_scores(y)[:k_all] * (n / np.maximum(self.index.union_sizes(k_all), n))
+            recent = float(norm[k_all - 2]) if k_all >= 2 else None  # the view a moment ago
+            a = cal.assess(norm[:limit], np.asarray(self.interval_stamp[:limit]), recent)
+            if a is not None:
+                best, best_score, second, second_score = a.best, a.score, a.second, a.second_score
+        loop = cal.accept(self.t, self.interval_start[best] if a is not None else -1,
+                          a.confidence if a is not None else -np.inf)
+        cal.frame_done()
+        self.runner_up = (second, second_score)
+        return loop, best, best_score, second, second_score
 
     def _top2_normalised(self, y: np.ndarray, limit: int) -> tuple[int, float, int, float]:
         """The top two candidates k < limit by s_k |y_t| / max(|Y_k|, |y_t|) (``union_normalised``;
@@ -185,7 +231,8 @@ class SpatialViewCells:
                 "start": np.asarray(self.interval_start, np.int64), "end": np.asarray(self.interval_end, np.int64),
                 "template": np.asarray(self.interval_template, np.int64), "n_templates": self.n_templates,
                 "current_template": self.current_template, "t": self.t,
-                "sequence": self.sequence.state_dict()}
+                "sequence": self.sequence.state_dict(), "stamps": np.asarray(self.interval_stamp, np.float64),
+                "calibration": self.calibration.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore a :meth:`state_dict`; a state made with other parameters (``params``) is
@@ -209,9 +256,11 @@ class SpatialViewCells:
             self.index.store_union(k, np.sort(a))
         self.index.compact()
         self.interval_start = [int(x) for x in state["start"]]
+        self.interval_stamp = [float(x) for x in state.get("stamps", self.interval_start)]
         self.interval_end = [int(x) for x in state["end"]]
         self.interval_template = [int(x) for x in state["template"]]
         self.n_templates = int(state["n_templates"])
         self.current_template = int(state["current_template"])
         self.t = int(state["t"])
         self.sequence.load_state_dict(state.get("sequence", {}))
+        self.calibration.load_state_dict(state.get("calibration", {}))

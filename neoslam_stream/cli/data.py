@@ -39,6 +39,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("run_dir")
     p.add_argument("--gt", help="ground truth TUM file (default: RUN_DIR/groundtruth.tum)")
     p.add_argument("--radius", type=float, default=1.0, help=RADIUS_HELP)
+    shift = p.add_mutually_exclusive_group()
+    shift.add_argument("--gt-offset", type=float, default=0.0, metavar="SECONDS",
+                       help="add SECONDS to the ground truth's stamps (a ground truth on another clock)")
+    shift.add_argument("--gt-align-start", action="store_true",
+                       help="shift the ground truth's stamps so its first stamp is the run's first")
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("dataset", help="write data sets", description="Write data sets to disk.")
@@ -112,11 +117,12 @@ def cmd_map_info(args: argparse.Namespace) -> int:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> int:
-    from ..evaluation import evaluate_run
+    from ..evaluation import StampMismatch, evaluate_run
 
     try:
-        ev = evaluate_run(args.run_dir, args.gt, radius=args.radius)
-    except FileNotFoundError as exc:
+        ev = evaluate_run(args.run_dir, args.gt, radius=args.radius, gt_offset=args.gt_offset,
+                          gt_align_start=args.gt_align_start)
+    except (FileNotFoundError, StampMismatch) as exc:
         return error(exc, 2)
     print_evaluation(ev)
     return 0

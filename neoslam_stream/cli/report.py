@@ -29,15 +29,42 @@ def print_summary(report: dict[str, Any]) -> None:
         f"loss {100 * loss:.1f} % ({report.get('frames_lost', '?')} of {report.get('frames_expected', '?')} frames)")
     con.print(f"frames in {report.get('frames_in')}, out {report.get('frames_out')} "
               f"(strided {report.get('frames_strided')}), {loss_text}, "
-              f"f_in {report.get('f_in', 0):.2f} Hz, f_out {report.get('f_out', 0):.2f} Hz, "
-              f"f_pipeline {fp if fp is None else round(fp, 2)} Hz (bottleneck {report.get('bottleneck')})")
+              f"f_in {_hz(report.get('f_in', 0))}, f_out {_hz(report.get('f_out', 0))}, "
+              f"f_pipeline {_hz(fp)} (bottleneck {report.get('bottleneck')})")
     causes = _loss_causes(report.get("loss_breakdown"))
     if causes:
         con.print(f"loss by cause: {causes}")
     src = report.get("source") or {}
     if src.get("lost_before_source"):  # a live ROS 2 camera's gaps in its sequence numbers
         con.print(f"lost before the source: {src['lost_before_source']} frames (publishers' sequence numbers)")
+    for note in [src.get("salvaged"), *(src.get("warnings") or [])]:  # a cut bag, a missing ground truth
+        if note:
+            con.print(f"source: {note}", markup=False)
+    for name, st in report.get("stages", {}).items():  # what a calibrated front end settled on
+        cal = (st.get("info") or {}).get("calibration")
+        if cal:
+            con.print(calibration_line(name, cal), markup=False)
+    if report.get("status") == "failed":
+        con.print(f"the run FAILED: {report.get('failure')}", markup=False)
     con.print(f"run folder: {report.get('run_dir')}")
+
+
+def calibration_line(stage: str, cal: dict[str, Any]) -> str:
+    """One line of what a calibrated front end settled on (report.json stages.<stage>.info)."""
+    if cal.get("ready_from_frame", -1) < 0:
+        return (f"{stage}: not calibrated: too few places seen a shortest loop ago "
+                f"({cal.get('min_revisit_s')} s) to judge a revisit; no loop closure")
+    head = (f"{stage}: calibrated from frame {cal['ready_from_frame']}: unrelated places score "
+            f"{cal.get('unrelated_mean')} +- {cal.get('unrelated_sd')}, a revisit needs >= {cal.get('score_needed')} "
+            f"(z >= {cal['z_min']}) over {cal['sequence_frames'] + 1} consistent frames; ")
+    if not cal.get("revisit_seen"):
+        return head + "no revisit seen in this run"
+    return head + f"{cal['closures']} loop closures from frame {cal['first_closure_frame']}"
+
+
+def _hz(value: float | None) -> str:
+    """A rate as the summary prints it; n/a where nothing was measured."""
+    return "n/a" if value is None else f"{value:.2f} Hz"
 
 
 def _loss_causes(breakdown: dict[str, Any] | None) -> str:
@@ -55,13 +82,19 @@ def _loss_causes(breakdown: dict[str, Any] | None) -> str:
 
 def print_evaluation(ev: dict[str, Any]) -> None:
     """evaluation.json in a few lines: trajectory, odometry and map errors, loop closures."""
-    from ..evaluation import closures_line
+    from ..evaluation import METRICS, closures_line
 
-    t, o = ev.get("trajectory_ape", {}), ev.get("odometry_ape", {})
-    m = ev.get("map_paper", {})
-    print(f"trajectory APE mean {t.get('mean_m', float('nan')):.3f} m (max {t.get('max_m', float('nan')):.3f}); "
-          f"odometry APE mean {o.get('mean_m', float('nan')):.3f} m; "
-          f"map nodes {ev.get('map_nodes', 0)}, paper metric mean {m.get('mean_m', float('nan')):.3f} m")
+    def m(d: dict[str, Any], key: str) -> str:
+        return "n/a" if d.get(key) is None else f"{d[key]:.3f} m"
+
+    t, o, p = ev.get("trajectory_ape", {}), ev.get("odometry_ape", {}), ev.get("map_paper", {})
+    print(f"trajectory APE (SE(2)-aligned) mean {m(t, 'mean_m')} (max {m(t, 'max_m')}); "
+          f"wheel odometry alone: APE mean {m(o, 'mean_m')}")
+    print(f"  {METRICS['ape']}")
+    print(f"map nodes {ev.get('map_nodes', 0)}: paper metric mean {m(p, 'mean_m')} (max {m(p, 'max_m')})")
+    print(f"  {METRICS['paper']}")
+    if ev.get("ground_truth_offset_s"):
+        print(f"ground truth stamps shifted by {ev['ground_truth_offset_s']:.3f} s")
     if "map_trajectory_ape" in ev:
         print(f"trajectory on the final map (trajectory_map.tum) APE mean {ev['map_trajectory_ape']['mean_m']:.3f} m "
               f"(max {ev['map_trajectory_ape']['max_m']:.3f})")

@@ -186,9 +186,10 @@ def cmd_run(args: argparse.Namespace) -> int:
         except subprocess.TimeoutExpired:
             viewer.terminate()
     if "part" in result.report:  # one host's share of a split run: the report is the other host's
-        print(f"run {result.report['run']}: stages {', '.join(result.report['part'])} done here "
+        here = [*result.report["part"], *(["the source"] if result.report.get("source_here") else [])]
+        print(f"run {result.report['run']}: {', '.join(here)} done here "
               f"(restarts {result.report['restarts']}); the report is in the run folder of the host "
-              f"with the source (part.json: {result.run_dir / 'part.json'})")
+              f"with the last stage and the monitor (part.json: {result.run_dir / 'part.json'})")
         return 128 + (result.signal or 2) if result.interrupted else 0
     print_summary(result.report)
     run_dir = result.run_dir
@@ -196,9 +197,12 @@ def cmd_run(args: argparse.Namespace) -> int:
         return error("--oracle-templates needs a source with ground truth (this one published none, so "
                      "no template was made)", 1)
     if (run_dir / "groundtruth.tum").exists() and (run_dir / "trajectory.tum").exists():
-        from ..evaluation import evaluate_run
+        from ..evaluation import StampMismatch, evaluate_run
 
-        print_evaluation(evaluate_run(run_dir))
+        try:
+            print_evaluation(evaluate_run(run_dir))
+        except StampMismatch as exc:  # e.g. no pose came out: the run's files say what there is
+            print(f"no evaluation: {exc}")
     if result.interrupted:  # the shell convention: 128 + the signal (130 for Ctrl-C, 143 for SIGTERM)
         return 128 + (result.signal or 2)
     return 0

@@ -23,7 +23,7 @@ import numpy as np
 
 from ..tum import read_tum, write_tum
 
-__all__ = ["ape", "associate", "best_rotation_2d", "closures_line", "evaluate_run", "loop_closure_quality", "online_floor",
+__all__ = ["METRICS", "StampMismatch", "ape", "associate", "best_rotation_2d", "closures_line", "evaluate_run", "loop_closure_quality", "online_floor",
            "paper_metric", "read_closures", "read_tum",
            "umeyama_se2", "write_tum"]
 
@@ -176,13 +176,55 @@ def closures_line(lc: dict[str, Any]) -> str:
             f"{r} m ({lc.get('correct', 0)} of {lc.get('closures', 0)} correct)")
 
 
+#: the two errors ``neoslam evaluate`` prints, each with the line that says what it measures
+#: (docs/evaluation.md, "Which figure to quote")
+METRICS = {
+    "ape": "APE (SE(2)-aligned): each pose's distance to the ground truth after the one rotation and "
+           "translation that fit the whole trajectory best (no scale); the accuracy figure to quote",
+    "paper": "paper metric (the NeoSLAM authors' per-node error): each experience-map node's distance to "
+             "the ground truth after subtracting both first points only (no rotation), so a heading error "
+             "at the start grows with the distance; quote it only next to NeoSLAM's published results",
+}
+
+
+class StampMismatch(ValueError):
+    """The run's stamps and the ground truth's do not overlap (or one of them has none)."""
+
+
+def _span(t: np.ndarray) -> str:
+    return f"{t.min():.3f} .. {t.max():.3f} s" if len(t) else "no stamps"
+
+
+def gt_time_shift(traj_t: np.ndarray, gt_t: np.ndarray, offset: float = 0.0, align_start: bool = False,
+                  gt_file: str | Path = "the ground truth") -> float:
+    """The seconds to add to the ground truth's stamps: ``offset``, or with ``align_start`` the
+    difference of the first stamps. Raises :class:`StampMismatch` naming both time ranges and the
+    fix when, so shifted, no pose of the run has a ground-truth sample within 0.5 s."""
+    if not len(traj_t):
+        raise StampMismatch("the run's trajectory.tum holds no pose (did the run fail? its report.json says)")
+    if not len(gt_t):
+        raise StampMismatch(f"{gt_file} holds no pose")
+    shift = float(traj_t.min() - gt_t.min()) if align_start else float(offset)
+    if len(associate(np.sort(traj_t), np.sort(gt_t) + shift)[0]):
+        return shift
+    shifted = f" shifted by {shift:.3f} s" if shift else ""
+    raise StampMismatch(
+        f"the run's stamps ({_span(traj_t)}) and the ground truth's{shifted} ({_span(gt_t + shift)}, "
+        f"{gt_file}) do not overlap: add --gt-offset SECONDS to shift the ground truth's stamps "
+        f"(--gt-offset {traj_t.min() - gt_t.min():.3f} if both started together), or --gt-align-start "
+        "to align the first stamps")
+
+
 def evaluate_run(run_dir: str | Path, gt_path: str | Path | None = None, radius: float = 1.0,
-                 plot: bool = True, walls: np.ndarray | None = None) -> dict[str, Any]:
+                 plot: bool = True, walls: np.ndarray | None = None, gt_offset: float = 0.0,
+                 gt_align_start: bool = False) -> dict[str, Any]:
     """Evaluate a run folder against ground truth; write ``evaluation.json`` (and ``map.png``).
 
     ``gt_path`` defaults to ``RUN_DIR/groundtruth.tum``; ``radius`` is the loop-closure correctness
     radius (m); ``walls`` (n, 2, 2) segments drawn under the plot in ground-truth coordinates, by
     default the synthetic world's when ``report.json`` says the run's source was ``synthetic``.
+    ``gt_offset`` (s) is added to the ground truth's stamps; ``gt_align_start`` shifts them so the
+    first stamps agree instead. Raises :class:`StampMismatch` when the stamps do not overlap.
     Returns the dict written to ``evaluation.json`` (keys in docs/evaluation.md).
     """
     run_dir = Path(run_dir)
@@ -190,32 +232,36 @@ def evaluate_run(run_dir: str | Path, gt_path: str | Path | None = None, radius:
     if not gt_file.exists():
         raise FileNotFoundError(f"no ground truth: {gt_file} (give --gt FILE)")
     gt = read_tum(gt_file)
-    result: dict[str, Any] = {"ground_truth": str(gt_file)}
+    traj = read_tum(run_dir / "trajectory.tum")
+    shift = gt_time_shift(traj[:, 0], gt[:, 0], gt_offset, gt_align_start, gt_file)
+    gt[:, 0] += shift
+    result: dict[str, Any] = {"ground_truth": str(gt_file), "ground_truth_offset_s": shift}
 
     def matched(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(estimate xy, ground truth xy) of the rows with a ground-truth sample near in time."""
         ie, ig = associate(rows[:, 0], gt[:, 0])
         return rows[ie, 1:3], gt[ig, 1:3]
 
-    traj = read_tum(run_dir / "trajectory.tum")
     est, ref = matched(traj)
     result["trajectory_ape"] = ape(est, ref)
     result["trajectory_paper"] = paper_metric(est, ref)
     on_map = run_dir / "trajectory_map.tum"
-    if on_map.exists():  # every frame re-expressed on the final, relaxed map (docs/evaluation.md)
-        result["map_trajectory_ape"] = ape(*matched(read_tum(on_map)))
+    est, ref = matched(read_tum(on_map)) if on_map.exists() else (est[:0], ref[:0])
+    if len(est):  # every frame re-expressed on the final, relaxed map (docs/evaluation.md)
+        result["map_trajectory_ape"] = ape(est, ref)
     mp = json.loads((run_dir / "map.json").read_text()) if (run_dir / "map.json").exists() else {"nodes": []}
     nodes = np.array([[n["stamp"], n["x"], n["y"]] for n in mp["nodes"]]).reshape(-1, 3)
-    if len(nodes):
-        ne, ng = associate(nodes[:, 0], gt[:, 0], max_dt=1.0)
+    ne, ng = associate(nodes[:, 0], gt[:, 0], max_dt=1.0) if len(nodes) else ([], [])
+    if len(ne):
         result["map_paper"] = paper_metric(nodes[ne, 1:3], gt[ng, 1:3])
         result["map_nodes"] = int(len(nodes))
     odo_file = run_dir / "odometry.tum"
-    if odo_file.exists():
-        est, ref = matched(read_tum(odo_file))
+    odo = read_tum(odo_file) if odo_file.exists() else np.empty((0, 4))
+    est, ref = matched(odo)
+    if len(est):
         result["odometry_ape"] = ape(est, ref)
         result["odometry_paper"] = paper_metric(est, ref)
-        result["online_floor"] = online_floor(gt, read_tum(odo_file), radius)
+        result["online_floor"] = online_floor(gt, odo, radius)
     if (run_dir / "templates.csv").exists():
         result["loop_closures"] = loop_closure_quality(run_dir / "templates.csv", gt, radius,
                                                        closures_csv=run_dir / "closures.csv")

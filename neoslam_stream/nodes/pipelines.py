@@ -84,14 +84,16 @@ def build_neoslam(cfg: Any) -> PipelinePlan:
                  NodeSpec("B", "neoslam_stream.nodes.projector:make_node", proj, threads=cfg.projector.threads)]
     specs = front + [
         NodeSpec("C", "neoslam_stream.nodes.neocortex:make_node", cfg.neocortex.model_dump()),
-        NodeSpec("D", "neoslam_stream.nodes.spatial_view:make_node", cfg.spatial_view.model_dump())]
+        NodeSpec("D", "neoslam_stream.nodes.spatial_view:make_node",
+                 {**cfg.spatial_view.model_dump(), "platform": cfg.platform.model_dump()})]
     _backend_specs(cfg, specs)
     return _backend_plan(specs, ["A"], _source_topics(cfg))
 
 
 def build_ratslam(cfg: Any) -> PipelinePlan:
     """The baseline: RatSLAM's local-view cells instead of NeoSLAM's front end."""
-    specs = [NodeSpec("local_view", f"{RATSLAM_NODES}:make_local_view_node", cfg.local_view.model_dump())]
+    specs = [NodeSpec("local_view", f"{RATSLAM_NODES}:make_local_view_node",
+                      {**cfg.local_view.model_dump(), "platform": cfg.platform.model_dump()})]
     _backend_specs(cfg, specs)
     return _backend_plan(specs, ["local_view"], _source_topics(cfg))
 

@@ -20,10 +20,10 @@ from typing import Any
 import numpy as np
 
 from ..algorithms.backend import Action, CameraOdometry, PoseCellStage, PoseCellStageConfig, integrate
+from ..algorithms.calibration import PlatformConfig
 from ..algorithms.errors import InvalidInput
-from ..algorithms.frontend import LocalViewFrontEnd
+from ..algorithms.frontend import LocalViewFrontEnd, LocalViewFrontEndConfig
 from ..algorithms.ratslam.experience_map import ExperienceMap, ExperienceMapConfig
-from ..algorithms.ratslam.local_view import LocalViewConfig
 from ..algorithms.ratslam.visual_odometry import VisualOdometryConfig
 from ..runtime.messages import Message, decode, encode
 from ..runtime.node import Node, Output, StageInputError
@@ -220,27 +220,30 @@ class ExperienceMapNode(Node):
 
 class LocalViewNode(Node):
     """RatSLAM's local-view cells in a node: ``image`` -> ``visual_template`` (id, relative_rad,
-    is_loop_closure, best_score = the match error). Parameters: :class:`LocalViewConfig`'s."""
+    is_loop_closure, best_score = the match error). Parameters: :class:`LocalViewFrontEndConfig`'s."""
 
     inputs = (IMAGE,)
     outputs = (VISUAL_TEMPLATE,)
 
-    def __init__(self, **params: Any) -> None:
+    def __init__(self, platform: dict[str, Any] | None = None, **params: Any) -> None:
         super().__init__()
-        self.front = LocalViewFrontEnd(LocalViewConfig(**params))
+        self.front = LocalViewFrontEnd(LocalViewFrontEndConfig(**params), PlatformConfig(**(platform or {})))
 
     def setup(self) -> None:
         self.front.warm_up()
 
     def process(self, topic: str, msg: Message) -> Output:
         try:
-            data = self.front.template(camera_pixels(msg.data))
+            data = self.front.template(camera_pixels(msg.data), msg.stamp)
         except InvalidInput as exc:
             raise StageInputError(str(exc)) from None
         return [(VISUAL_TEMPLATE, msg.derive(VISUAL_TEMPLATE, data))]
 
     def info(self) -> dict[str, Any]:
-        return {"templates": len(self.front.cells.templates)}
+        out: dict[str, Any] = {"templates": len(self.front.cells.templates)}
+        if self.front.config.calibration.enabled:  # what the run settled on (report.json)
+            out["calibration"] = self.front.calibration.report()
+        return out
 
     def state_dict(self) -> dict[str, Any]:
         return self.front.state_dict()

@@ -338,6 +338,10 @@ class RecorderNode(Node):
         self._settle_closures(final=True)
         if not self.run_dir:
             return []
+        if self._files is None and not (self.templates or self.trajectory or self.closures
+                                        or (self.map_export or {}).get("nodes")):
+            self._no_outputs()  # a run that failed before its first frame leaves no empty results
+            return []
         self._retry_at = 0.0  # the end: one more attempt at whatever is waiting
         self._open()
         self._write_backlog()
@@ -363,6 +367,19 @@ class RecorderNode(Node):
         if self.mcap is not None:
             self._write_mcap()
         return []
+
+    def _no_outputs(self) -> None:
+        """Nothing was recorded: no output file is created, and those an earlier run left in this
+        folder go (a restart of this run's worker keeps its files, which its journal names)."""
+        out = Path(self.run_dir)
+        journal = complete_lines(out / JOURNAL) if self.run_id else []
+        if journal and journal[0] == f"run {self.run_id}\n".encode():
+            return
+        for name in (TEMPLATES, TRAJECTORY, CLOSURES, JOURNAL, "map.json", TRAJECTORY_ON_MAP, MCAP):
+            try:
+                (out / name).unlink(missing_ok=True)
+            except OSError as exc:
+                self._failed(out / name, exc)
 
     def trajectory_on_map(self) -> str:
         """trajectory_map.tum's text: the frames' poses on the final map (``trajectory.tum``'s

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from ..algorithms.calibration import PlatformConfig
 from ..algorithms.errors import InvalidInput
 from ..algorithms.frontend import TEMPLATE_KEYS
 from ..algorithms.spatial_view import SpatialViewCells, SpatialViewConfig
@@ -19,9 +20,9 @@ class SpatialViewNode(Node):
     inputs = (SDR,)
     outputs = (VISUAL_TEMPLATE,)
 
-    def __init__(self, **params: Any) -> None:
+    def __init__(self, platform: dict[str, Any] | None = None, **params: Any) -> None:
         super().__init__()
-        self.cells = SpatialViewCells(SpatialViewConfig(**params))
+        self.cells = SpatialViewCells(SpatialViewConfig(**params), platform=PlatformConfig(**(platform or {})))
         self.loops = 0
 
     def setup(self) -> None:
@@ -29,7 +30,7 @@ class SpatialViewNode(Node):
 
     def process(self, topic: str, msg: Message) -> Output:
         try:
-            res = self.cells.compute(msg["cells"])
+            res = self.cells.compute(msg["cells"], msg.stamp)
         except InvalidInput as exc:
             raise StageInputError(str(exc)) from None
         self.loops += res["is_loop_closure"]
@@ -38,8 +39,11 @@ class SpatialViewNode(Node):
         return [(VISUAL_TEMPLATE, msg.derive(VISUAL_TEMPLATE, {k: res[k] for k in TEMPLATE_KEYS}))]
 
     def info(self) -> dict[str, Any]:
-        return {"intervals": self.cells.n_intervals, "templates": self.cells.n_templates,
-                "loop_closures": self.loops}
+        out = {"intervals": self.cells.n_intervals, "templates": self.cells.n_templates,
+               "loop_closures": self.loops}
+        if self.cells.config.calibration.enabled:  # what the run settled on (report.json)
+            out["calibration"] = self.cells.calibration.report()
+        return out
 
     def state_dict(self) -> dict[str, Any]:
         return {"cells": self.cells.state_dict(), "loops": self.loops}

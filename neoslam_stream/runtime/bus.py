@@ -10,6 +10,8 @@ drops the *oldest* waiting message and never blocks its upstream (congestion con
 back-pressure reaches the source. The queues are fed by zenoh callbacks, with the semantics of
 ``RingChannel``/``FifoChannel``, so that one worker thread waits on all its inputs without polling
 and every eviction is counted with the frame it removed (docs/runtime.md, "The two modes").
+A put may carry its frame in the sample's attachment (:class:`LinkTag`): a lossless run split over
+hosts uses it to refuse a stream with a hole in it (a link that lost samples) or of an older epoch.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ import json
 import os
 import random
 import socket
+import struct
 import threading
 import time
 from collections import deque
@@ -136,6 +139,33 @@ class QueueStats:
     evicted: int = 0
 
 
+#: no frame before this one (a producer's first put, or an untagged one)
+NO_FRAME = -(2**63)
+_TAG = struct.Struct("<4sqqq")
+_TAG_MAGIC = b"nslk"
+
+
+@dataclass(frozen=True)
+class LinkTag:
+    """What a put says about its place in its producer's stream (the sample's attachment): its
+    frame, the frame of the producer's previous put on the topic (``NO_FRAME`` for the first) and
+    the run's epoch (a lossless run split over hosts starts a new epoch when it rolls back)."""
+
+    frame: int
+    prev: int
+    epoch: int = 0
+
+    def pack(self) -> bytes:
+        return _TAG.pack(_TAG_MAGIC, self.frame, self.prev, self.epoch)
+
+    @staticmethod
+    def unpack(data: bytes | None) -> LinkTag | None:
+        if data is None or len(data) != _TAG.size:
+            return None
+        magic, frame, prev, epoch = _TAG.unpack(data)
+        return LinkTag(frame, prev, epoch) if magic == _TAG_MAGIC else None
+
+
 class InputQueue:
     """One waiting place for all the inputs of a worker.
 
@@ -144,10 +174,18 @@ class InputQueue:
     ``get`` returns items of any topic in arrival order.
     """
 
-    def __init__(self, capacities: dict[str, int], lossless: bool) -> None:
+    def __init__(self, capacities: dict[str, int], lossless: bool, strict: bool = False, epoch: int = 0) -> None:
         if any(c < 1 for c in capacities.values()):
             raise ValueError(f"queue capacities must be >= 1, got {capacities}")
         self.lossless = lossless
+        #: ``strict``: each topic must come as its producer sent it (LinkTag.prev is the last frame
+        #: taken) and of ``epoch``; a hole closes the topic (nothing after it is taken: a lossless
+        #: stage must not process frames out of order) and is reported in ``holes``
+        self.strict = strict
+        self.epoch = epoch
+        self.last_tag: dict[str, int] = {}
+        self.holes: dict[str, list[int]] = {}
+        self.refused_stale = 0
         self.capacities = dict(capacities)
         self._items: dict[str, deque] = {t: deque() for t in capacities}
         self._order: deque[tuple[str, int]] = deque()  # (topic, seq) arrival order
@@ -156,8 +194,10 @@ class InputQueue:
         self._closed = False
         self.stats: dict[str, QueueStats] = {t: QueueStats() for t in capacities}
 
-    def put(self, topic: str, payload: bytes, received: float) -> None:
+    def put(self, topic: str, payload: bytes, received: float, tag: LinkTag | None = None) -> None:
         with self._cond:
+            if self.strict and tag is not None and not self._in_order(topic, tag):
+                return
             q = self._items[topic]
             cap = self.capacities[topic]
             if self.lossless:
@@ -173,6 +213,20 @@ class InputQueue:
             self._order.append((topic, self._seq))
             self.stats[topic].received += 1
             self._cond.notify_all()
+
+    def _in_order(self, topic: str, tag: LinkTag) -> bool:
+        """Strict mode: whether the tagged put continues ``topic``'s stream (module docstring)."""
+        if tag.epoch != self.epoch:
+            self.refused_stale += 1
+            return False
+        if topic in self.holes:
+            return False
+        last = self.last_tag.get(topic)
+        if last is not None and tag.prev != NO_FRAME and tag.prev != last:
+            self.holes[topic] = [last, tag.prev, tag.frame]  # lost: the puts after ``last`` up to ``prev``
+            return False
+        self.last_tag[topic] = tag.frame
+        return True
 
     def _pop_next(self) -> tuple[str, bytes, float] | None:
         while self._order:
@@ -224,12 +278,14 @@ class InputQueue:
 class Bus:
     """A session bound to one run: publishers and queue-fed subscribers by topic name."""
 
-    def __init__(self, session: zenoh.Session, run: str, lossless: bool) -> None:
+    def __init__(self, session: zenoh.Session, run: str, lossless: bool, epoch: int = 0) -> None:
         self.session = session
         self.run = run
         self.lossless = lossless
+        self.epoch = epoch
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._subscribers: list[zenoh.Subscriber] = []
+        self._prev: dict[str, int] = {}
 
     def publisher(self, topic: str, express: bool = False) -> zenoh.Publisher:
         pub = self._publishers.get(topic)
@@ -240,14 +296,22 @@ class Bus:
             self._publishers[topic] = pub
         return pub
 
-    def put(self, topic: str, payload: bytes) -> None:
-        self.publisher(topic).put(payload)
+    def put(self, topic: str, payload: bytes, frame: int | None = None) -> None:
+        """Publish ``payload``; with its ``frame``, tagged (:class:`LinkTag`) for strict consumers."""
+        if frame is None:
+            self.publisher(topic).put(payload)
+            return
+        tag = LinkTag(int(frame), self._prev.get(topic, NO_FRAME), self.epoch)
+        self.publisher(topic).put(payload, attachment=tag.pack())
+        self._prev[topic] = tag.frame
 
     def subscribe(self, topic: str, queue: InputQueue) -> None:
         """Feed ``topic`` into ``queue`` (ring or FIFO semantics are the queue's)."""
 
         def on_sample(sample: zenoh.Sample, _topic: str = topic) -> None:
-            queue.put(_topic, sample.payload.to_bytes(), time.time())
+            att = sample.attachment
+            tag = LinkTag.unpack(att.to_bytes()) if att is not None and queue.strict else None
+            queue.put(_topic, sample.payload.to_bytes(), time.time(), tag)
 
         self._subscribers.append(self.session.declare_subscriber(key_for(self.run, topic), on_sample))
 

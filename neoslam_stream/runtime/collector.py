@@ -43,6 +43,8 @@ def _add_lives(earlier: dict[str, Any], now: dict[str, Any]) -> dict[str, Any]:
     for k in CUMULATIVE_MAPS:
         if k in earlier or k in now:
             out[k] = _add_maps(earlier.get(k) or {}, now.get(k) or {})
+    if "published_ranges" in earlier:  # a source started again (a rollback): every frame it published
+        out.update(_merge_source_lives(earlier, now))
     inputs = {t: dict(i) for t, i in (now.get("inputs") or {}).items()}
     for t, i in (earlier.get("inputs") or {}).items():
         cur = inputs.setdefault(t, {"received": 0, "evicted": 0, "depth": 0})
@@ -50,6 +52,32 @@ def _add_lives(earlier: dict[str, Any], now: dict[str, Any]) -> dict[str, Any]:
         cur["evicted"] = cur.get("evicted", 0) + i.get("evicted", 0)
     if inputs or "inputs" in now:
         out["inputs"] = inputs
+    return out
+
+
+def union_ranges(*lists: list[list[int]]) -> list[list[int]]:
+    """The union of lists of ``[first, last]`` frame ranges, sorted and merged."""
+    out: list[list[int]] = []
+    for a, b in sorted((int(r[0]), int(r[1])) for rs in lists for r in rs):
+        if out and a <= out[-1][1] + 1:
+            out[-1][1] = max(out[-1][1], b)
+        else:
+            out.append([a, b])
+    return out
+
+
+def _merge_source_lives(earlier: dict[str, Any], now: dict[str, Any]) -> dict[str, Any]:
+    """The source's figures over its lives: the frames published (each once, however often it
+    was published), the known losses added, the first publication of the first life."""
+    ranges = union_ranges(earlier.get("published_ranges") or [], now.get("published_ranges") or [])
+    out: dict[str, Any] = {"published_ranges": ranges, "frames_in": sum(b - a + 1 for a, b in ranges),
+                           "frame_times": list(earlier.get("frame_times") or []) + list(now.get("frame_times") or []),
+                           "doomed_frames": sorted(set(earlier.get("doomed_frames") or [])
+                                                   | set(now.get("doomed_frames") or []))}
+    for k in ("lost_at_source", "published_doomed"):
+        out[k] = _add_maps(earlier.get(k) or {}, now.get(k) or {})
+    firsts = [x for x in (earlier.get("first_publish"), now.get("first_publish")) if x is not None]
+    out["first_publish"] = min(firsts) if firsts else None
     return out
 
 
@@ -71,6 +99,9 @@ class StatsCollector:
         self.prev: dict[str, dict[str, Any]] = {}
         self.first_seen: dict[str, float] = {}
         self.changed_at: dict[str, float] = {}
+        #: per stage: (first, last) frame each earlier life processed (the gaps between lives are
+        #: the frames a restart cost)
+        self.spans: dict[str, list[list[int]]] = {}
         self.lock = threading.Lock()
 
     def on_sample(self, sample: Any) -> None:
@@ -91,7 +122,11 @@ class StatsCollector:
             if raw_old is None:
                 self.lives[name] = 1
             elif data.get("pid") is not None and raw_old.get("pid") not in (None, data.get("pid")):
+                if name == "source" and "published_ranges" in raw_old:  # its frames are merged
+                    self.earlier.setdefault(name, {}).setdefault("published_ranges", [])
                 self.earlier[name] = _add_lives(self.earlier.get(name, {}), raw_old)
+                self.spans.setdefault(name, []).append([int(raw_old.get("first_frame", -1)),
+                                                        int(raw_old.get("last_frame", -1))])
                 self.lives[name] = self.lives.get(name, 1) + 1
             self.raw[name] = dict(data)
             if name in self.earlier:

@@ -121,6 +121,8 @@ class RunSection(Strict):
     stages: list[str] | None = None
     #: the run id (key expressions neoslam/<run_id>/...): the parts of a split run must share it
     run_id: str | None = Field(None, pattern=r"^[A-Za-z0-9_-]{1,64}$")
+    #: a split run: another host silent this long (seconds) is gone, and this host ends its share
+    host_timeout: float = Field(30.0, gt=0)
 
 
     @field_validator("nice")

@@ -5,10 +5,11 @@
 stages of both exchange their topics through a zenoh router that both supervisors reach. Inside a
 host nothing changes; between hosts only the supervisors' routers are linked (zenoh routes between
 the peers of linked routers, not between peers that merely share a router). The host that runs the
-pipeline's last stage (the primary) also runs the source and the monitor and ends the run, stopping
-the other hosts' workers with the run's ``stop`` control messages; the other hosts end when their
-workers have stopped, or when the primary's monitor has been gone for ``PRIMARY_GONE_S``.
-``rest`` takes every worker no other host announced (liveliness tokens ``neoslam/<run>/part/...``).
+pipeline's last stage (the primary) runs the monitor, ends the run and stops the other hosts'
+processes with the run's ``stop`` control messages; the source runs on the host that names
+``source`` in its ``--stages`` (a camera on the robot), else on the primary. ``rest`` takes every
+worker no other host announced (liveliness tokens ``neoslam/<run>/part/...``). What the hosts
+tell each other, and how a lossless run survives a lost link: parts_recovery.py.
 Details: docs/runtime.md, "One run, stages on several hosts".
 """
 
@@ -22,30 +23,33 @@ from pathlib import Path
 from typing import Any
 
 from .bus import key_for, open_session
+from .parts_recovery import PartRecovery
+from .report import write_report
 from .topology import CONTROL_TOKEN_ENV, PipelinePlan, RunError, RunResult, Supervisor, run_plan
 
 log = logging.getLogger("neoslam.parts")
 
 #: a ``rest`` host waits this long after the first announcement of another host for further ones
 SETTLE_S = 2.0
-#: a host without the source ends its share when the run's monitor has been gone this long
-PRIMARY_GONE_S = 30.0
 
 
 def parse_stages(text: str) -> list[str]:
-    """``A,B`` -> ["A", "B"]; ``rest`` -> ["rest"] (the CLI's --stages)."""
+    """``A,B`` -> ["A", "B"]; ``A,B,source``: the source here too; ``rest`` -> ["rest"] (the
+    CLI's --stages)."""
     names = [n.strip() for n in text.split(",") if n.strip()]
     if not names:
-        raise ValueError("--stages needs stage names (A,B,...) or 'rest'")
+        raise ValueError("--stages needs stage names (A,B,...), 'source' or 'rest'")
     if "rest" in names and len(names) > 1:
         raise ValueError("--stages rest takes no other names")
     return names
 
 
 def check_selection(groups: dict[str, list[Any]], stages: list[str]) -> list[str]:
-    """The workers of ``stages`` in the plan's order; a clear error for a name that is no worker."""
+    """The workers of ``stages`` in the plan's order (``source`` is no worker); a clear error for
+    a name that is no worker."""
     if stages == ["rest"]:
         return []
+    stages = [n for n in stages if n != "source"]
     hosted_by = {s.name: w for w, specs in groups.items() for s in specs}
     unknown = [n for n in stages if n not in hosted_by]
     if unknown:
@@ -57,7 +61,7 @@ def check_selection(groups: dict[str, list[Any]], stages: list[str]) -> list[str
     return [w for w in groups if w in stages]
 
 
-class PartSupervisor(Supervisor):
+class PartSupervisor(PartRecovery, Supervisor):
     """The supervisor of one host's share of a run split over several hosts (module docstring)."""
 
     def __init__(self, cfg: Any, plan: PipelinePlan, run_dir: str | Path | None = None,
@@ -73,14 +77,28 @@ class PartSupervisor(Supervisor):
             raise RunError(f"--stages needs the run's control secret, the same on every host: set "
                            f"{CONTROL_TOKEN_ENV} (e.g. to the output of `openssl rand -hex 16`) in the "
                            f"environment of every host's `neoslam run`")
-        super().__init__(cfg, plan, run_dir, resume, map_path, source_factory)
+        # a part resumes its own stages only: the cut is chosen once they are known (_select_hosted)
+        super().__init__(cfg, plan, run_dir, None, map_path, source_factory)
         self.stages = list(cfg.run.stages)
         self.hosted = check_selection(self.groups, self.stages)
+        self.runs_source = "source" in self.stages
+        self.part_resume = Path(resume) if resume else None
         self._part_token: Any = None
+        self.init_recovery()
+
+    def run(self) -> RunResult:
+        try:
+            return super().run()
+        except RunError as exc:
+            if self.is_primary:
+                raise
+            # this host's share has no report.json: its part.json says what happened here
+            raise RunError(str(exc).replace(str(self.run_dir / "report.json"), str(self.run_dir / "part.json"))) \
+                from None
 
     # ------------------------------------------------------------------ which workers run here
     def _announced(self) -> dict[str, list[str]]:
-        """Workers announced by the parts of this run on the bus (token key -> its workers)."""
+        """Processes announced by the parts of this run on the bus (token key -> its names)."""
         out = {}
         for reply in self.session.liveliness().get(key_for(self.run_id, "part/*"), timeout=1.0):
             try:
@@ -107,17 +125,21 @@ class PartSupervisor(Supervisor):
             if not self.hosted:
                 raise RunError(f"--stages rest: the other hosts run every stage already ({sorted(elsewhere)})")
         else:
-            clash = {w for ws in self._announced().values() for w in ws} & set(self.hosted)
+            elsewhere = {w for ws in self._announced().values() for w in ws}
+            clash = elsewhere & {*self.hosted, *(["source"] if self.runs_source else [])}
             if clash:
                 raise RunError(f"stage(s) {sorted(clash)} already run on another host of run {self.run_id}")
         last = list(self.groups)[-1]
         self.is_primary = last in self.hosted
+        # the source runs where a host named it, else with the primary
+        self.runs_source = self.runs_source or (self.is_primary and "source" not in elsewhere)
         self.order = ["supervisor", *(["monitor"] if self.is_primary else []), *self.hosted,
-                      *(["source"] if self.is_primary else [])]
-        self._part_token = self.session.liveliness().declare_token(
-            key_for(self.run_id, "part/" + ",".join(self.hosted)))
-        log.warning("run %s: this host runs %s%s", self.run_id, ", ".join(self.hosted),
-                    " with the source and the monitor" if self.is_primary else "")
+                      *(["source"] if self.runs_source else [])]
+        self.label = ",".join([*self.hosted, *(["source"] if self.runs_source else [])])
+        self._part_token = self.session.liveliness().declare_token(key_for(self.run_id, "part/" + self.label))
+        log.warning("run %s: this host runs %s%s%s", self.run_id, ", ".join(self.hosted),
+                    " and the source" if self.runs_source else "", " with the monitor" if self.is_primary else "")
+        self.start_recovery()
 
     def _links(self, name: str) -> tuple[list[str], list[str]]:
         """Only this host's earlier processes: other hosts are reached through the supervisor's
@@ -125,36 +147,14 @@ class PartSupervisor(Supervisor):
         i = self.order.index(name)
         return [self.endpoints[name], *self.cfg.bus.listen], [self.endpoints[n] for n in self.order[:i]]
 
-    # ------------------------------------------------------------------ a host without the source
-    def _supervise(self) -> bool:
-        if self.is_primary:
-            return super()._supervise()
-        # the primary's monitor lives as long as the run: gone for PRIMARY_GONE_S, the run is over
-        seen_at: float | None = None
-        checked = 0.0
-        while True:
-            time.sleep(0.2)
-            if self.interrupts:
-                return True
-            now = time.monotonic()
-            if now - checked > 5.0:
-                checked = now
-                if "monitor" in self._alive_tokens():
-                    seen_at = now
-                elif seen_at is not None and now - seen_at > PRIMARY_GONE_S:
-                    log.warning("run %s: the host with the source is gone (no monitor for %.0f s); "
-                                "stopping the stages here", self.run_id, now - seen_at)
-                    return False
-            done = []
-            for w in self.hosted:
-                p = self.procs.get(w)
-                if p is not None and not p.is_alive() and p.exitcode == 0:
-                    done.append(w)  # stopped by the primary's control message
-            if len(done) == len(self.hosted):
-                return False
-            self._restart_crashed(stopped=done)
+    def _resume_frame(self) -> int:
+        """Before the first frame: the run's monitor is ready too, wherever it runs."""
+        if not self.is_primary:
+            self._wait_ready(["monitor"], self.cfg.run.startup_timeout)
+        return self.resume_cut or 0
 
     def _complete_report(self, interrupted: bool) -> dict[str, Any]:
+        self.stop_recovery()
         if self._part_token is not None:
             try:
                 self._part_token.undeclare()
@@ -163,14 +163,14 @@ class PartSupervisor(Supervisor):
         if self.is_primary:
             report = super()._complete_report(interrupted)
             report["hosted_here"] = list(self.hosted)
-            path = self.run_dir / "report.json"
-            tmp = path.with_suffix(".json.tmp")
-            tmp.write_text(json.dumps(report, indent=2))
-            os.replace(tmp, path)
+            report.update(self.recovery_report(report))
+            write_report(self.run_dir / "report.json", report)
             return report
-        report = {"run": self.run_id, "part": list(self.hosted), "restarts": dict(self.restarts),
-                  "restart_events": list(self.restart_events), "interrupted": interrupted,
-                  "signal": self.last_signal if interrupted else None, "run_dir": str(self.run_dir)}
+        report = {"run": self.run_id, "part": list(self.hosted), "source_here": self.runs_source,
+                  "restarts": dict(self.restarts), "restart_events": list(self.restart_events),
+                  "interrupted": interrupted, "signal": self.last_signal if interrupted else None,
+                  "failure": getattr(self, "failure", None), "run_dir": str(self.run_dir),
+                  **self.recovery_part()}
         tmp = self.run_dir / "part.json.tmp"
         tmp.write_text(json.dumps(report, indent=2))
         os.replace(tmp, self.run_dir / "part.json")

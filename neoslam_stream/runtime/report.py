@@ -90,9 +90,11 @@ def build_report(stats: dict[str, dict[str, Any]], final: FinalTracker,
                 "cpu_mean_percent": 100.0 * st.get("cpu_s", 0.0) / active,
             }
 
-    # eq. 2 generalised to processes: a worker serves its chain in sequence
+    # eq. 2 generalised to processes: a worker serves its chain in sequence; no prediction from
+    # stages that processed nothing (their service times measure no message)
+    measured = any(r.get("processed") for r in stage_rows.values())
     per_worker = {w: sum(stage_rows.get(n, {}).get("tau_mean_ms", 0.0) for n in names)
-                  for w, names in workers.items()}
+                  for w, names in workers.items()} if measured else {}
     bottleneck_worker = max(per_worker, key=per_worker.get) if per_worker else None
     tau_b = per_worker.get(bottleneck_worker, 0.0) if bottleneck_worker else 0.0
     f_pipeline = 1e3 / tau_b if tau_b > 0 else float("inf")
@@ -137,6 +139,31 @@ def build_report(stats: dict[str, dict[str, Any]], final: FinalTracker,
     return report
 
 
+#: the figures of a run that processed no frame: measured over nothing, they are null in a failed
+#: run's report rather than numbers that look real
+UNMEASURED = ("f_in", "f_out", "duration_s", "loss", "loss_percent", "frames_lost", "frames_expected",
+              "f_pipeline_predicted", "predicted_loss", "bottleneck", "bottleneck_tau_ms",
+              "latency_p50_ms", "latency_p95_ms")
+
+
+def mark_status(report: dict[str, Any], failure: str | None, interrupted: bool,
+                source_failure: str | None = None) -> dict[str, Any]:
+    """``status`` (``completed``, ``interrupted`` or ``failed``) and ``failure`` (the cause, or
+    None) of ``report``. The source's failure counts as one of its errors; a failed run that
+    processed no frame keeps none of the :data:`UNMEASURED` figures (null)."""
+    report["status"] = "failed" if failure else "interrupted" if interrupted else "completed"
+    report["failure"] = failure
+    if source_failure:
+        causes = dict(report.get("source_error_causes") or {})
+        causes[source_failure] = causes.get(source_failure, 0) + 1
+        report["source_error_causes"] = causes
+        report["source_errors"] = int(report.get("source_errors") or 0) + 1
+        report["errors"] = int(report.get("errors") or 0) + 1
+    if failure and not report.get("frames_out"):
+        report.update(dict.fromkeys(UNMEASURED))
+    return report
+
+
 def _in_ranges(frame: int, starts: list[int], ranges: list[list[int]]) -> bool:
     import bisect
 
@@ -167,10 +194,12 @@ def loss_accounting(src: dict[str, Any], final: FinalTracker, stage_rows: dict[s
     frames_in = int(src.get("frames_in", 0))
     lost_src = {str(k): int(v) for k, v in (src.get("lost_at_source") or {}).items()}
     at_source = sum(lost_src.values())
+    # published, but known at the source to reach no end (no odometry to send with them)
+    doomed = {str(k): int(v) for k, v in (src.get("published_doomed") or {}).items() if v}
     expected = max(0, frames_in + at_source - strided)
     lost = max(0, expected - frames_out)
     stages: dict[str, Any] = {}
-    attributed = at_source
+    attributed = at_source + sum(doomed.values())
     for name, row in stage_rows.items():
         if row.get("missing"):
             continue
@@ -180,7 +209,7 @@ def loss_accounting(src: dict[str, Any], final: FinalTracker, stage_rows: dict[s
         if any(b.values()):
             stages[name] = b
             attributed += sum(b.values())
-    breakdown = {"source": lost_src, "stages": stages, "unattributed": max(0, lost - attributed)}
+    breakdown = {"source": {**lost_src, **doomed}, "stages": stages, "unattributed": max(0, lost - attributed)}
     return {"frames_out": frames_out, "frames_expected": expected, "frames_lost": lost,
             "frames_lost_at_source": at_source, "loss": lost / expected if expected > 0 else 0.0,
             "breakdown": breakdown}

@@ -87,6 +87,8 @@ class SourceRunSpec:
     control_token: str = ""
     #: the message types of the run with their schemas (the plan's): the final topic's among them
     topics: list[Topic] = field(default_factory=list)
+    #: the run's epoch (bus.LinkTag): a lossless run split over hosts starts a new one when it rolls back
+    epoch: int = 0
 
 
 class _Progress:
@@ -184,7 +186,7 @@ def run_source(spec: SourceRunSpec) -> None:
         Path(spec.run_dir, "source_error.txt").write_text(cause + "\n")
         sys.exit(3)
     session = open_session(spec.listen, spec.connect, spec.shm)
-    bus = Bus(session, spec.run, spec.lossless)
+    bus = Bus(session, spec.run, spec.lossless, epoch=spec.epoch)
     progress = _Progress(spec.start_frame)
     gate = ControlGate(spec.control_token, "source")
     bus.subscribe_callback(key_for(spec.run, spec.final_topic), progress.on_sample)
@@ -223,6 +225,13 @@ def run_source(spec: SourceRunSpec) -> None:
     # the frames the camera produced that never left the source, per cause
     ranges: list[list[int]] = []
     lost: dict[str, int] = {}
+    # frames published that cannot reach the end, known here: the pipeline needs their odometry
+    # and the source had none to send (its row refused or missing), by cause
+    doomed: dict[str, int] = {}
+    doomed_frames: list[int] = []
+    NO_ODOMETRY = "published without odometry (its row refused or missing at the source): no pose"
+    # [frame, time published] about once a second (where a frame lies in time: outages)
+    frame_times: list[list[float]] = []
     GAP = "gap in the source's frame numbers (frames it skipped)"
     RING = "source ring full (camera faster than the run: oldest frames dropped)"
     UNPUBLISHABLE = "image not publishable"
@@ -254,6 +263,8 @@ def run_source(spec: SourceRunSpec) -> None:
             lost_now[RING] = ring
         data = {"stage": "source", "pid": os.getpid(), "frames_in": counts["image"], "odom": counts["odom"],
                 "published_ranges": [list(r) for r in ranges], "lost_at_source": lost_now,
+                "published_doomed": dict(doomed), "doomed_frames": list(doomed_frames), "epoch": spec.epoch,
+                "frame_times": [list(x) for x in frame_times],
                 "control_refused": gate.refused, "control_refused_causes": dict(gate.causes),
                 "errors": sum(causes.values()), "error_causes": causes,
                 "groundtruth": counts["groundtruth"], "first_publish": first_pub,
@@ -361,11 +372,17 @@ def run_source(spec: SourceRunSpec) -> None:
                     if topic == "image":
                         lost[UNPUBLISHABLE] = lost.get(UNPUBLISHABLE, 0) + 1
                     continue
-                bus.put(topic, payload)
+                bus.put(topic, payload, sf.frame)
                 counts[topic] += 1
                 sent.add(topic)
                 if topic == "image":
                     mark_published(sf.frame)
+                    if (not frame_times or now - frame_times[-1][1] >= 1.0) and len(frame_times) < 100_000:
+                        frame_times.append([sf.frame, now])
+            if "image" in sent and "odom" in spec.wait_topics and "odom" not in sent:
+                doomed[NO_ODOMETRY] = doomed.get(NO_ODOMETRY, 0) + 1
+                if len(doomed_frames) < 100_000:
+                    doomed_frames.append(sf.frame)
             record_rows(sf, "groundtruth" in sent, "odom" in sent)
             first_pub = now if first_pub is None else first_pub
             last_pub = now

@@ -37,7 +37,7 @@ from .messages import register_topics
 from .monitor import MonitorSpec
 from .plan import PipelinePlan, RunError, RunResult, group_workers, make_run_dir
 from .procs import monitor_entry, source_entry, worker_entry
-from .report import build_report, write_report
+from .report import build_report, mark_status, write_report
 from .source_runner import SourceRunSpec, SourceSpec
 from .worker import WorkerSpec
 
@@ -74,6 +74,7 @@ class Supervisor(ChildProcesses):
         #: and whether it runs the source and the monitor
         self.hosted: list[str] = list(self.groups)
         self.is_primary = True
+        self.runs_source = True
         self.procs: dict[str, Any] = {}
         self.restarts: dict[str, int] = {}
         self.interrupts = 0
@@ -222,6 +223,8 @@ class Supervisor(ChildProcesses):
         for name in ("timeline.csv", "stats.jsonl"):  # the monitor appends (it may be restarted)
             (self.run_dir / name).unlink(missing_ok=True)
         interrupted = False
+        #: why the run failed (a process that refused its state, a worker given up on, the source)
+        self.failure: str | None = None
         try:
             self._select_hosted()
             if self.is_primary:
@@ -231,14 +234,15 @@ class Supervisor(ChildProcesses):
                 self._start(w, worker_entry, self.worker_spec(w))
             # every worker of the run, those of other hosts included (their tokens come through the router)
             self._wait_ready(list(self.groups), self.cfg.run.startup_timeout)
-            if self.is_primary:
+            if self.runs_source:
                 start_frame = self._resume_frame()
                 self._start("source", source_entry, self.source_spec(start_frame))
             interrupted = self._supervise()
-        except RunError:
+        except RunError as exc:
             if not self.interrupts:
-                raise
-            interrupted = True  # Ctrl-C during start-up or a crash while stopping: an interrupted run
+                self.failure = str(exc)  # the report says so before the error goes on
+            else:
+                interrupted = True  # Ctrl-C during start-up or a crash while stopping: an interrupted run
         finally:
             self._shutdown()
             stats_sub.undeclare()
@@ -246,9 +250,11 @@ class Supervisor(ChildProcesses):
             self.session.close()
             signal.signal(signal.SIGINT, old_int)
             signal.signal(signal.SIGTERM, old_term)
+        if self.source_failure and not self.failure:
+            self.failure = f"the source failed: {self.source_failure}"
         report = self._complete_report(interrupted)
-        if self.source_failure:
-            raise RunError(f"the source failed: {self.source_failure} (report: {self.run_dir / 'report.json'})")
+        if self.failure:
+            raise RunError(f"{self.failure} (report: {self.run_dir / 'report.json'})")
         return RunResult(self.run_dir, report, interrupted, dict(self.restarts),
                          self.last_signal if interrupted else None)
 
@@ -317,6 +323,8 @@ class Supervisor(ChildProcesses):
         report["signal"] = self.last_signal if interrupted else None
         report["source_failure"] = self.source_failure
         report["interrupted"] = interrupted
+        # a failed run says so, with its cause, and keeps no figure measured over nothing
+        mark_status(report, getattr(self, "failure", None), interrupted, self.source_failure)
         report["run_dir"] = str(self.run_dir)
         report["workers"] = {w: [s.name for s in specs] for w, specs in self.groups.items()}
         write_report(path, report)

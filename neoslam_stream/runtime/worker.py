@@ -83,6 +83,10 @@ class WorkerSpec:
     control_token: str = ""
     #: the message types of the run with their schemas (the plan's), registered at the start
     topics: list[Topic] = field(default_factory=list)
+    #: take each input only as its producer sent it, of this epoch (bus.InputQueue's ``strict``):
+    #: a lossless run split over hosts, which rolls back rather than skip a frame a link lost
+    strict_order: bool = False
+    epoch: int = 0
 
 
 class Worker(WorkerStats, CheckpointCuts):
@@ -161,9 +165,10 @@ class Worker(WorkerStats, CheckpointCuts):
 
     def connect(self) -> None:
         session = open_session(self.spec.listen, self.spec.connect, self.spec.shm)
-        self.bus = Bus(session, self.spec.run, self.spec.lossless)
+        self.bus = Bus(session, self.spec.run, self.spec.lossless, epoch=self.spec.epoch)
         caps = {t: self.spec.capacities.get(t, self.spec.default_capacity) for t in self.external_inputs}
-        self.queue = InputQueue(caps, lossless=self.spec.lossless)
+        self.queue = InputQueue(caps, lossless=self.spec.lossless, strict=self.spec.strict_order,
+                                epoch=self.spec.epoch)
         for t in self.external_inputs:
             self.bus.subscribe(t, self.queue)
         self.bus.subscribe_callback(key_for(self.spec.run, "control"), self._on_control)
@@ -259,6 +264,7 @@ class Worker(WorkerStats, CheckpointCuts):
         for m, r in zip(msgs, received, strict=True):
             st.times.add(per_frame, max(0.0, started - r))
             st.last_frame = max(st.last_frame, m.frame)
+            st.first_frame = m.frame if st.first_frame < 0 else min(st.first_frame, m.frame)
         st.processed += len(msgs)
         self._emit(idx, outputs, st.name, dict(zip((m.frame for m in msgs), received, strict=False)),
                    started, finished)
@@ -289,7 +295,7 @@ class Worker(WorkerStats, CheckpointCuts):
             st.record_error(f"output not encodable: {exc}")
             return
         assert self.bus is not None
-        self.bus.put(topic, payload)
+        self.bus.put(topic, payload, msg.frame)
         st.published[topic] += 1
 
     def handle(self, topic: str, payload: bytes, received: float) -> None:

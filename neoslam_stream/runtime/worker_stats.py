@@ -84,6 +84,8 @@ class StageRuntime:
         self.internal_error_causes: dict[str, int] = {}
         self.times = ServiceStats()
         self.last_frame = -1
+        #: the oldest frame this life processed (a restarted stage's lives leave a gap between them)
+        self.first_frame = -1
         #: the newest frame number accepted on any input (the base of ``max_frame_jump``)
         self.frame_seen = -1
         self.checkpoint_index = 0
@@ -157,12 +159,16 @@ class WorkerStats:
                     "internal_errors": st.internal_errors,
                     "internal_error_causes": dict(st.internal_error_causes),
                     "inputs": inputs, "outputs": list(st.outputs),
-                    "consumes": list(st.inputs), "last_frame": st.last_frame,
+                    "consumes": list(st.inputs), "last_frame": st.last_frame, "first_frame": st.first_frame,
                     "info": info, "cpu_percent": cpu, "cpu_s": cpu_s, "rss_mb": rss, "pss_mb": pss,
                     "final": final,
                     # per process: the worker's first stage carries it (the report sums processes)
                     "control_refused": self.control.refused if i == 0 else 0,
                     "control_refused_causes": dict(self.control.causes) if i == 0 else {},
+                    # strict inputs (a lossless run over hosts): holes a link made, older epochs
+                    "holes": dict(self.queue.holes) if self.queue and i == 0 else {},
+                    "stale_refused": self.queue.refused_stale if self.queue and i == 0 else 0,
+                    "epoch": self.spec.epoch,
                     "n_stages_in_worker": len(self.stages), **st.times.summary()}
             out.append(Message("stats", 0, now, data))
         return out

@@ -8,12 +8,15 @@ odometry) and the ground truth at the frame's stamp (``groundtruth_topic``: Pose
 PoseWithCovarianceStamped, Odometry, or NavSatFix in local metres), interpolated linearly in time
 between the samples around it; none more than ``groundtruth_max_gap_s`` outside their span.
 Without an image topic, frames are the odometry (or ground-truth) messages: odometry-only runs of
-the back end. Stamps are header stamps (the receive time when a header stamp is zero). Details:
-docs/sources.md, "bag".
+the back end. Stamps are header stamps (the receive time when a header stamp is zero). A
+ground-truth topic the bag lacks is a warning: the run goes on without ground truth. A bag
+rosbags cannot open (an MCAP file or ROS 1 bag cut short) is read up to its first damaged
+record (mcap_salvage.py, ros1_salvage.py). Details: docs/sources.md, "bag".
 """
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Iterator
 from pathlib import Path
@@ -110,6 +113,9 @@ class BagSource(Source):
         self.max_side = max_side
         self.groundtruth_max_gap_s = groundtruth_max_gap_s
         self.salvaged: str | None = None
+        self.salvaged_messages: int | None = None
+        #: what the run goes on without (report.json's ``source.warnings``, said once in the log)
+        self.warnings: list[str] = []
         self._open: Any = lambda: AnyReader([self.path], default_typestore=self._typestore)
         try:
             with self._open():
@@ -119,6 +125,9 @@ class BagSource(Source):
         with self._open() as reader:
             available = {c.topic: c.msgtype for c in reader.connections}
             for role, topic in self.topics.items():
+                if role == "groundtruth" and topic and topic not in available and (image_topic or odom_topic):
+                    self._without_groundtruth(topic)  # a user's own bag rarely has ground truth
+                    continue
                 if topic and topic not in available:
                     raise ValueError(f"{role} topic {topic!r} not in {self.path}; it has {sorted(available)}")
                 if topic and available[topic] not in ROLE_TYPES[role]:
@@ -178,25 +187,48 @@ class BagSource(Source):
                 if self.max_frames and frame >= self.max_frames:
                     return
 
+    def _without_groundtruth(self, topic: str) -> None:
+        note = (f"ground-truth topic {topic!r} is not in {self.path.name}: running without ground truth "
+                "(no evaluation; -p groundtruth_topic=null runs without it and without this warning)")
+        logging.getLogger(__name__).warning("%s", note)
+        self.warnings.append(note)
+        self.topics["groundtruth"] = None
+
     def _salvage_or_raise(self, exc: Exception) -> None:
-        """A bag rosbags cannot open: read what is left of a truncated MCAP file (counted as one
-        source error with its cause), or fail with a clear message."""
+        """A bag rosbags cannot open: read what is left of a truncated MCAP file or ROS 1 bag
+        (counted as one source error with its cause), or fail with a clear message."""
+        from .mcap_salvage import MAGIC as MCAP_MAGIC
         from .mcap_salvage import SalvageMcapReader
+        from .ros1_salvage import MAGIC, SalvageRos1Reader
 
         mcaps = [self.path] if self.path.suffix == ".mcap" else sorted(self.path.glob("*.mcap")) \
             if self.path.is_dir() else []
+        reader: Any = None
         if len(mcaps) == 1:
             try:
-                reader = SalvageMcapReader(mcaps[0], self._typestore)
+                reader, name, how = SalvageMcapReader(mcaps[0], self._typestore), mcaps[0].name, "record by record"
             except (OSError, ValueError):
                 reader = None
-            if reader is not None and reader.messages_read:
-                self.salvaged = (f"{mcaps[0].name} cannot be opened normally ({exc}); "
-                                 f"{'truncated: ' if reader.cut else ''}read its first {reader.messages_read} "
-                                 "messages record by record")
-                self.record_error(self.salvaged)
-                self._open = lambda: reader
-                return
+        elif self.path.is_file():
+            with self.path.open("rb") as f:
+                start = f.read(len(MAGIC))
+            if not start.startswith((MAGIC, MCAP_MAGIC)):
+                raise ValueError(f"cannot read bag {self.path}: not a ROS 1 bag (it would start with "
+                                 f"{MAGIC.strip().decode()}), an MCAP file or a ROS 2 bag folder") from None
+            if start == MAGIC:
+                try:
+                    reader, name, how = SalvageRos1Reader(self.path), self.path.name, "chunk by chunk"
+                except (OSError, ValueError):
+                    reader = None
+        if reader is not None and reader.messages_read:
+            self.salvaged = (f"{name} cannot be opened normally ({exc}); "
+                             f"{'truncated: ' if reader.cut else ''}read its first {reader.messages_read} "
+                             f"messages {how}" + (f", up to {reader.stopped}" if getattr(reader, "stopped", None)
+                                                  and not reader.cut else ""))
+            self.salvaged_messages = reader.messages_read
+            self.record_error(self.salvaged)
+            self._open = lambda: reader
+            return
         raise ValueError(f"cannot read bag {self.path}: {type(exc).__name__}: {exc} "
                          "(a truncated or corrupt file?)") from None
 
@@ -234,4 +266,5 @@ class BagSource(Source):
 
     def info(self) -> dict[str, Any]:
         return {"kind": "bag", "path": str(self.path), "topics": self.topics, "frames": self.length,
-                "rate_hz": self.rate_hz, "salvaged": self.salvaged}
+                "rate_hz": self.rate_hz, "salvaged": self.salvaged, "salvaged_messages": self.salvaged_messages,
+                "warnings": list(self.warnings)}

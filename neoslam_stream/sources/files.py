@@ -178,6 +178,9 @@ class ImageFolderSource(Source):
                     odom = odometry_between(np.stack([prev_row, row]), float(prev_row[0]), t) \
                         if prev_row is not None else (0.0, 0.0, 0.0)
                     prev_row = row
+            else:  # a short odometry file: the images beyond it have no motion
+                self.record_error(f"odometry file has {len(self.odo)} rows for {len(self.files)} images: "
+                                  f"images beyond row {len(self.odo) - 1} have no motion")
             # a header claiming gigapixels, or bytes that do not decode, are passed on undecoded:
             # the stage refuses them with their cause instead of the decoder allocating here
             img = decode_bounded(raw, self.max_side)

@@ -55,7 +55,8 @@ def _png_header_only(width: int, height: int) -> bytes:
 
 def write_image_folder(root: Path, n_good: int = 16, seed: int = 0) -> FolderManifest:
     """Good synthetic frames (PNG and JPEG, colour and grey, one duplicate) with broken files in
-    between, and an odometry.tum with a NaN row, an inf row and a stamp going backwards."""
+    between, and an odometry.tum with a NaN row, an inf row, a stamp going backwards and a stamp
+    equal to the previous one."""
     root = Path(root)
     img_dir = root / "images"
     img_dir.mkdir(parents=True, exist_ok=True)
@@ -118,6 +119,10 @@ def write_image_folder(root: Path, n_good: int = 16, seed: int = 0) -> FolderMan
     man.bad_odometry[inf_row] = "NaN or infinite"
     rows[back_row] = (rows[back_row - 2][0] - 0.05, *rows[back_row][1:])
     man.bad_odometry[back_row] = "is not after the previous"
+    # a row with the stamp of the row before it: motion in no time (dt = 0)
+    same_row = man.good[12]
+    rows[same_row] = (rows[same_row - 1][0], *rows[same_row][1:])
+    man.bad_odometry[same_row] = "is not after the previous"
     with open(root / "odometry.tum", "w") as fh:  # write_tum would format NaN the same way
         for t, px, py, pth in rows:
             fh.write(f"{t:.6f} {px} {py} 0 0 0 {math.sin(pth / 2):.9f} {math.cos(pth / 2):.9f}\n")

@@ -1,0 +1,48 @@
+"""The README's table of bench/results/generalisation.json: each data set with the single
+default, the paper profile and RatSLAM side by side (``python bench/generalisation.py --table``)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+def _pr(r: dict[str, Any] | None) -> str:
+    if not r:
+        return "—"
+    p = "—" if r.get("precision") is None else f"{r['precision']:.2f}"
+    return f"{p} / {r['recall']:.2f}"
+
+
+def _mean(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    ps = [r["precision"] for r in rows if r["precision"] is not None]
+    return {"precision": sum(ps) / len(ps) if ps else None, "recall": sum(r["recall"] for r in rows) / len(rows)}
+
+
+def table(res: dict[str, Any]) -> str:
+    test = res.get("test", {})
+    lines = ["| data set (held out) | figure | default | paper profile | RatSLAM |", "|---|---|---|---|---|"]
+    route = res.get("route")
+    if route:
+        d, p, r = route["default"], route["paper"], route["ratslam"]
+        lines.append(f"| synthetic world 0, the default route | closure precision / recall | {_pr(d)} | {_pr(p)} | {_pr(r)} |")
+        lines.append(f"| | APE online (floor {d['online_floor_m']:.2f} m) / on the final map | "
+                     f"{d['ape_mean_m']:.2f} / {d['ape_on_final_map_m']:.2f} m | "
+                     f"{p['ape_mean_m']:.2f} / {p['ape_on_final_map_m']:.2f} m | "
+                     f"{r['ape_mean_m']:.2f} / {r['ape_on_final_map_m']:.2f} m |")
+    for label, prefix in (("synthetic world 2", "synthetic:2"), ("Nordland summer → winter (test subset)", "nordland:0")):
+        if prefix in test:
+            t = test[prefix]
+            lines.append(f"| {label} | precision / recall | {_pr(t['default'])} | {_pr(t['paper'])} | {_pr(t['ratslam'])} |")
+    for label, prefix in (("sparse two-lap stand-ins, no stamps (4 worlds)", "sparse"),
+                          ("the same, second lap under other light (4 worlds)", "hard")):
+        parts = [v for k, v in test.items() if k.startswith(prefix + ":")]
+        if parts:
+            cells = [_pr(_mean([v[n] for v in parts])) for n in ("default", "paper", "ratslam")]
+            lines.append(f"| {label} | mean precision / recall | {' | '.join(cells)} |")
+    tuc = res.get("tuc")
+    if tuc:
+        d, p = tuc["default"], tuc["paper"]
+        lines.append(f"| TU Chemnitz corridor (back end) | map error / odometry's | "
+                     f"{d['map_mean_m']:.1f} / {d['odometry_mean_m']:.1f} m ({d['map_vs_odometry']:.0%}) | "
+                     f"{p['map_mean_m']:.1f} m ({p['map_vs_odometry']:.0%}) | — |")
+    return "\n".join(lines)

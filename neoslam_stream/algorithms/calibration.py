@@ -1,0 +1,214 @@
+"""Loop closures decided from the run's own statistics, not from absolute thresholds.
+
+For each frame, the candidates' similarity scores are mostly those of unrelated places: their mean
+mu and standard deviation sd (the candidates within ``neighbourhood_m`` of the winner left out,
+as views of the same place) say what an unrelated place scores in this run, with this camera,
+now. The winner is a revisit when it stands out: z = (s - mu) / sd >= z_min, and it reaches at
+least ``rho`` of the way from mu to the level of the view a moment ago (how alike two views of
+one place are here, which rejects look-alikes that stand out but are far from it). A closure then
+needs evidence over ``sequence_m`` of travel: the frames of that stretch matched consistent places
+and their mean confidence is >= 0. Distances become times through the platform's typical speed,
+times become frames through the stamps' measured interval; a place can come back no sooner than
+one shortest loop at twice the typical speed. docs/mapping.md gives the reasoning and how the
+constants were chosen.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class PlatformConfig(BaseModel):
+    """What a user knows about the robot and its world: physical quantities, not thresholds."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    #: the robot's typical speed while mapping
+    speed_mps: float = Field(0.5, gt=0)
+    #: the shortest route that brings the robot back to a place it has seen (one lap of the
+    #: smallest loop; for a route driven once and then again, the route's length)
+    shortest_loop_m: float = Field(10.0, gt=0)
+    #: the size of the area (its longest extent)
+    area_m: float = Field(50.0, gt=0)
+
+    def min_revisit_s(self) -> float:
+        """The earliest a place can come back: one shortest loop at twice the typical speed."""
+        return self.shortest_loop_m / (2.0 * self.speed_mps)
+
+
+class CalibrationConfig(BaseModel):
+    """Parameters of the calibrated decision (``enabled: false``: the absolute thresholds)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = False
+    #: the winner stands this many standard deviations above the unrelated places' mean
+    z_min: float = Field(4.0, ge=0)
+    #: and reaches this fraction of the way from their mean to the level of the view a moment ago
+    #: (1: at least as alike as two views a moment apart)
+    rho: float = Field(1.0, ge=0)
+    #: candidates (outside the winner's neighbourhood) needed before the statistics are trusted
+    min_candidates: int = Field(20, ge=3)
+    #: travel over which consistent evidence is needed
+    sequence_m: float = Field(0.6, ge=0)
+    #: views closer than this (along the way) show the same place
+    neighbourhood_m: float = Field(2.0, gt=0)
+
+
+@dataclass
+class Assessment:
+    """One frame's verdict on its best candidate: ``confidence`` >= 0 when it stands out."""
+
+    best: int
+    score: float
+    z: float
+    confidence: float
+    second: int
+    second_score: float
+    mean: float
+    sd: float
+
+
+class RunCalibration:
+    """The per-frame statistics, the consistency of the evidence and what the run settled on.
+
+    ``assess`` judges one frame's candidates; ``accept`` records the frame's best candidate
+    (its reference frame) and confidence and says whether the evidence over the last
+    ``sequence_m`` of travel makes it a closure.
+    """
+
+    def __init__(self, config: CalibrationConfig, platform: PlatformConfig, max_step: float = 2.0,
+                 slack: int = 4) -> None:
+        self.config = config
+        self.platform = platform
+        self.max_step = max_step
+        self.slack = slack
+        self.history: deque[tuple[int, int, float]] = deque(maxlen=1)
+        self.intervals: deque[float] = deque(maxlen=64)
+        self.last_stamp: float | None = None
+        #: what the run settled on, for its report
+        self.ready_frame = -1
+        self.frames_assessed = 0
+        self.sum_mean = self.sum_sd = 0.0
+        self.closures = 0
+        self.first_closure_frame = -1
+
+    # ---------------------------------------------------------------- time
+    def on_stamp(self, stamp: float) -> None:
+        """Measure the frame interval from the stamps (median of the last 64)."""
+        if self.last_stamp is not None and stamp > self.last_stamp:
+            self.intervals.append(stamp - self.last_stamp)
+        self.last_stamp = stamp
+
+    @property
+    def frame_s(self) -> float:
+        return float(np.median(self.intervals)) if self.intervals else 1.0
+
+    def seconds(self, metres: float) -> float:
+        return metres / self.platform.speed_mps
+
+    @property
+    def min_gap_s(self) -> float:
+        return self.platform.min_revisit_s()
+
+    @property
+    def sequence_frames(self) -> int:
+        """L: the frames before this one that must agree (0 when sequence_m is 0)."""
+        if self.config.sequence_m <= 0:
+            return 0
+        return max(1, math.ceil(self.seconds(self.config.sequence_m) / self.frame_s - 1e-9))
+
+    # ---------------------------------------------------------------- decisions
+    def assess(self, scores: np.ndarray, times: np.ndarray, recent: float | None) -> Assessment | None:
+        """``scores``: the candidates' similarities (higher: more alike); ``times``: their stamps;
+        ``recent``: the similarity to the view a moment ago (None: unknown). None when too few
+        candidates lie outside the winner's neighbourhood."""
+        if scores.shape[0] == 0:
+            return None
+        best = int(np.argmax(scores))
+        far = np.abs(times - times[best]) > self.seconds(self.config.neighbourhood_m)
+        rest = scores[far]
+        if rest.shape[0] < self.config.min_candidates:
+            return None
+        mean, sd = float(rest.mean()), float(rest.std()) + 1e-9
+        s = float(scores[best])
+        z = (s - mean) / sd
+        level = mean if recent is None else mean + self.config.rho * max(recent - mean, 0.0)
+        confidence = min(z - self.config.z_min, (s - level) / sd)
+        second = int(np.flatnonzero(far)[np.argmax(rest)])
+        if self.ready_frame < 0:
+            self.ready_frame = self.frames_assessed
+        self.sum_mean += mean
+        self.sum_sd += sd
+        return Assessment(best, s, z, confidence, second, float(scores[second]), mean, sd)
+
+    def accept(self, t: int, ref: int, confidence: float) -> bool:
+        """Frame t's best candidate (``ref``: its reference frame, -1 for none) with its confidence:
+        a closure when the L frames before t had consistent references and the mean confidence
+        of the L + 1 is >= 0. Call once per frame, in frame order."""
+        n = self.sequence_frames
+        if self.history.maxlen != max(n, 1):
+            self.history = deque(self.history, maxlen=max(n, 1))
+        ok = ref >= 0
+        if ok and n:
+            by_frame = {f: (m, c) for f, m, c in self.history}
+            total = confidence
+            for i in range(1, n + 1):
+                m, c = by_frame.get(t - i, (-1, -math.inf))
+                if m < 0 or abs(ref - m) > i * self.max_step + self.slack:
+                    ok = False
+                    break
+                total += c
+            ok = ok and total / (n + 1) >= 0
+        else:
+            ok = ok and confidence >= 0
+        self.history.append((t, ref, confidence if ref >= 0 else -math.inf))
+        if ok:
+            self.closures += 1
+            if self.first_closure_frame < 0:
+                self.first_closure_frame = t
+        return ok
+
+    def frame_done(self) -> None:
+        self.frames_assessed += 1
+
+    # ---------------------------------------------------------------- report and state
+    def report(self) -> dict[str, Any]:
+        """What this run settled on: the unrelated places' level and spread, the score a winner
+        needed (mean + z_min sd, averaged over the frames), from which frame, and whether any
+        revisit was seen."""
+        n = self.frames_assessed - self.ready_frame if self.ready_frame >= 0 else 0
+        out: dict[str, Any] = {"z_min": self.config.z_min, "rho": self.config.rho,
+                               "min_revisit_s": round(self.min_gap_s, 3), "sequence_frames": self.sequence_frames,
+                               "frame_s": round(self.frame_s, 4), "ready_from_frame": self.ready_frame,
+                               "closures": self.closures, "first_closure_frame": self.first_closure_frame}
+        if n > 0:
+            mean, sd = self.sum_mean / n, self.sum_sd / n
+            out.update({"unrelated_mean": round(mean, 3), "unrelated_sd": round(sd, 3),
+                        "score_needed": round(mean + self.config.z_min * sd, 3)})
+        out["revisit_seen"] = self.closures > 0
+        return out
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"history": [[t, m, c] for t, m, c in self.history], "intervals": list(self.intervals),
+                "last_stamp": self.last_stamp,
+                "figures": [self.ready_frame, self.frames_assessed, self.sum_mean, self.sum_sd, self.closures,
+                            self.first_closure_frame]}
+
+    def load_state_dict(self, st: dict[str, Any]) -> None:
+        self.history = deque(((int(t), int(m), float(c)) for t, m, c in st.get("history", [])),
+                             maxlen=max(self.sequence_frames, 1))
+        self.intervals = deque((float(v) for v in st.get("intervals", [])), maxlen=64)
+        stamp = st.get("last_stamp")
+        self.last_stamp = None if stamp is None else float(stamp)
+        fig = st.get("figures")
+        if fig:
+            (self.ready_frame, self.frames_assessed, self.sum_mean, self.sum_sd, self.closures,
+             self.first_closure_frame) = (int(fig[0]), int(fig[1]), float(fig[2]), float(fig[3]), int(fig[4]),
+                                          int(fig[5]))

@@ -36,10 +36,14 @@ bench: setup
 	$(BIN)/python bench/ratslam.py
 	$(BIN)/python bench/e2e.py
 	$(BIN)/neoslam bench emulate --no-live --out bench/results/emulate
-	$(BIN)/neoslam bench throughput --rates 10,13,20,30,35,40,45,60 --duration 30 --topology both --out bench/results/throughput
-	$(BIN)/neoslam bench throughput --rates 30 --duration 300 --topology pipeline --out bench/results/throughput
-	$(BIN)/neoslam bench throughput --rates 30,45,60 --duration 30 --topology pipeline --projection sparse --out bench/results/throughput_sparse
-	$(BIN)/neoslam bench throughput --rates "" --scaling 20000 --out bench/results/throughput
+	$(BIN)/neoslam bench throughput --backbone random_alexnet --rates 10,13,20,30,35,40,45,60 --duration 30 --topology both --out bench/results/throughput
+	$(BIN)/neoslam bench throughput --backbone random_alexnet --rates 30 --duration 300 --topology pipeline --out bench/results/throughput
+	$(BIN)/neoslam bench throughput --backbone random_alexnet --rates 30,45,60 --duration 30 --topology pipeline --projection sparse --out bench/results/throughput_sparse
+	$(BIN)/neoslam bench throughput --backbone random_alexnet --rates "" --scaling 20000 --out bench/results/throughput
+	$(BIN)/neoslam bench throughput --rates 30,45,60 --duration 30 --topology both --out bench/results/throughput_default
+	$(BIN)/python bench/stage_a.py
+	$(BIN)/python bench/cores.py
+	$(BIN)/python bench/projector_paths.py
 	$(BIN)/python bench/soak.py
 
 clean:

@@ -63,26 +63,27 @@ VALIDATE = {
     "neoslam run --realtime --source zenoh-ros2 -p image_topic=/camera/image_raw -p odom_topic=/odom "
     "-p 'connect=[\"tcp/robot:7447\"]'",
     "neoslam bench emulate --tau 50,280,20,350 --rate 10 --duration 30 --topology both --out bench/results/emulate",
-    "neoslam bench throughput --rates 10,13,20,30,35,40,45,60 --duration 30 --topology both "
+    "neoslam bench throughput --backbone random_alexnet --rates 10,13,20,30,35,40,45,60 --duration 30 --topology both "
     "--out bench/results/throughput",
-    "neoslam bench throughput --rates 30 --duration 300 --topology pipeline --out bench/results/throughput",
-    "neoslam bench throughput --rates 30,45,60 --duration 30 --topology pipeline --projection sparse "
+    "neoslam bench throughput --backbone random_alexnet --rates 30 --duration 300 --topology pipeline --out bench/results/throughput",
+    "neoslam bench throughput --rates 30,45,60 --duration 30 --topology both --out bench/results/throughput_default",
+    "neoslam bench throughput --backbone random_alexnet --rates 30,45,60 --duration 30 --topology pipeline --projection sparse "
     "--out bench/results/throughput_sparse",
-    "neoslam bench throughput --rates \"\" --scaling 20000 --out bench/results/throughput",
+    "neoslam bench throughput --backbone random_alexnet --rates \"\" --scaling 20000 --out bench/results/throughput",
     "neoslam bench throughput --scaling 20000",
-    "neoslam bench throughput --rates 30,35,40,45,50,60 --duration 30 --topology both "
+    "neoslam bench throughput --backbone random_alexnet --rates 30,35,40,45,50,60 --duration 30 --topology both "
     "--out bench/results/throughput_batched",
-    "neoslam bench throughput --rates 45,60 --duration 30 --topology pipeline --matrix-dtype int8 "
+    "neoslam bench throughput --backbone random_alexnet --rates 45,60 --duration 30 --topology pipeline --matrix-dtype int8 "
     "--out bench/results/throughput_int8",
-    "neoslam bench throughput --rates 30,40,50,60 --duration 30 --topology both --matrix-dtype int8 --feature-bits 7 "
+    "neoslam bench throughput --backbone random_alexnet --rates 30,40,50,60 --duration 30 --topology both --matrix-dtype int8 --feature-bits 7 "
     "--out bench/results/throughput_int8_7bit",
-    "neoslam bench throughput --rates 60 --duration 300 --topology pipeline --matrix-dtype int8 --feature-bits 7 "
+    "neoslam bench throughput --backbone random_alexnet --rates 60 --duration 300 --topology pipeline --matrix-dtype int8 --feature-bits 7 "
     "--out bench/results/throughput_int8_7bit",
-    "neoslam bench throughput --rates 60 --duration 300 --topology pipeline --matrix-dtype int8 --feature-bits 7 "
+    "neoslam bench throughput --backbone random_alexnet --rates 60 --duration 300 --topology pipeline --matrix-dtype int8 --feature-bits 7 "
     "--image-capacity 4 --out bench/results/throughput_60fps_5min",
-    "neoslam bench throughput --rates 40,45,50,60,70,80 --duration 30 --topology both --matrix-dtype int8 "
+    "neoslam bench throughput --backbone random_alexnet --rates 40,45,50,60,70,80 --duration 30 --topology both --matrix-dtype int8 "
     "--feature-bits 7 --out bench/results/throughput_ratio",
-    "neoslam bench throughput --rates 60 --duration 300 --topology pipeline --matrix-dtype int8 --feature-bits 7 "
+    "neoslam bench throughput --backbone random_alexnet --rates 60 --duration 300 --topology pipeline --matrix-dtype int8 --feature-bits 7 "
     "--tx-queue 16 --out bench/results/throughput_60fps_txqueue",
     "neoslam run -c paper",
     "neoslam run --oracle-templates",

@@ -91,7 +91,7 @@ def test_loads_torchvision_state_dict_from_path(tmp_path):
     torch.save(state, path)
     fx = F.VisualFeatureExtractor(backbone="alexnet", weights_path=str(path))
     assert fx.backbone == "alexnet"
-    torch.testing.assert_close(fx.net.conv2.weight, state["features.3.weight"])
+    torch.testing.assert_close(fx.module.conv2.weight, state["features.3.weight"])
     # the first output value equals a hand computation of conv3(pool(relu(conv2(...))))
     img = np.full((64, 64, 3), 128, np.uint8)
     x = torch.from_numpy(fx.preprocess(img))[None]
@@ -110,7 +110,7 @@ def test_loads_conv_only_file_and_hub_cache(tmp_path, monkeypatch):
     monkeypatch.setenv("TORCH_HOME", str(tmp_path))
     fx = F.VisualFeatureExtractor(backbone="auto")
     assert fx.backbone == "alexnet" and "4df8aa71" in fx.weights_source
-    torch.testing.assert_close(fx.net.conv3.bias, state["features.6.bias"])
+    torch.testing.assert_close(fx.module.conv3.bias, state["features.6.bias"])
 
 
 def test_missing_weights_error_says_how_to_provide_them(tmp_path, monkeypatch):
@@ -171,3 +171,17 @@ def test_failed_batch_does_not_count_strided_frames():
     for m in (good[0], good[1]):
         assert st.process("image", m) == []
     assert st.counters["strided"] == 2
+
+
+@pytest.mark.parametrize("backbone", ["efficientnet_lite0", "random_alexnet"])
+def test_frozen_inference_gives_the_modules_features(backbone):
+    # the traced, frozen, optimised backbone computes what the module as written computes (batch
+    # norm folded into the convolutions only reorders float operations), for any batch size
+    imgs = [np.random.default_rng(i).integers(0, 256, (120, 208, 3), dtype=np.uint8) for i in range(3)]
+    eager = F.VisualFeatureExtractor(backbone=backbone, device="cpu", inference="eager")
+    frozen = F.VisualFeatureExtractor(backbone=backbone, device="cpu")
+    assert eager.net is eager.module and isinstance(frozen.net, torch.jit.ScriptModule)
+    a, b = eager.extract_batch(imgs), frozen.extract_batch(imgs)
+    assert a.shape == b.shape == (3, frozen.output_dim)
+    np.testing.assert_allclose(b, a, rtol=0, atol=1e-5 * float(np.abs(a).max()))
+    np.testing.assert_array_equal(np.stack([frozen.extract(i) for i in imgs]), b)

@@ -73,7 +73,12 @@ def test_smoke_run_writes_throughput_json(tmp_path, capsys):
     assert r["frames_in"] > 0 and 0 <= r["frames_processed"] <= r["frames_in"]
     assert 0.0 <= r["loss"] <= 1.0
     assert {"A", "B", "C", "D", "pose_cells", "experience_map"} <= set(r["stages"])
-    assert r["backbone"] == "random_alexnet" and r["backbone_is_random"] is True
+    # no --backbone: the shipped default's backbone, as `neoslam run` resolves it (not the random one)
+    from neoslam_stream.algorithms.weights import resolve_backbone
+    from neoslam_stream.config import load_config
+
+    assert r["backbone"] == resolve_backbone(load_config("default").features) != "random_alexnet"
+    assert r["backbone_is_random"] is False
     assert "Processed Frames" in res["paper_table"]
     sc = res["scaling"]
     assert sc["frames"] == 150 and sc["loss"] == 0.0  # lossless

@@ -60,9 +60,10 @@ def register(bsub: argparse._SubParsersAction) -> None:
                    help="input rates in FPS, comma-separated (default 10,13,20,30,45,60)")
     p.add_argument("--duration", type=float, default=60.0, help="seconds of input per run (default 60)")
     p.add_argument("--topology", choices=["pipeline", "monolithic", "both"], default="both")
-    p.add_argument("--backbone", default="random_alexnet",
-                   help="feature backbone (default random_alexnet: AlexNet's cost without its weights; "
-                        "alexnet with weights costs the same)")
+    p.add_argument("--backbone", default=None,
+                   help="feature backbone (default: the config's, as a user runs it; random_alexnet: "
+                        "AlexNet's cost without its weights, the paper's comparison; alexnet with "
+                        "weights costs the same)")
     flags = ConfigFlags(p)
     flags.add("--projection", path="projector.projection", help="override stage B's projection")
     flags.add("--matrix-dtype", path="projector.matrix_dtype",

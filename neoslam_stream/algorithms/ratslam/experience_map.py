@@ -63,7 +63,9 @@ def _relax(x, y, th, lfrom, lto, ld, lhead, lface, loops, corr, robust=0.0):  # 
     """exp_loops Gauss-Seidel sweeps: experiences in index order, each one's outgoing links in
     insertion order (a counting sort of the link list by source keeps that order). ``robust`` > 0:
     each link's correction is scaled by the Cauchy weight robust^2 / (robust^2 + r^2) of its
-    current position error r (ExperienceMapConfig.exp_robust_m)."""
+    current position error r (ExperienceMapConfig.exp_robust_m). A sweep that changes nothing
+    ends the relaxation: the next would start from the same state and change nothing either (a map
+    without a loop closure is such a fixed point, whose sweeps were all wasted)."""
     n = x.shape[0]
     m = lfrom.shape[0]
     ptr = np.zeros(n + 1, np.int64)
@@ -77,6 +79,7 @@ def _relax(x, y, th, lfrom, lto, ld, lhead, lface, loops, corr, robust=0.0):  # 
         order[fill[lfrom[li]]] = li
         fill[lfrom[li]] += 1
     for _ in range(loops):
+        changed = False
         for e0 in range(n):
             for p in range(ptr[e0], ptr[e0 + 1]):
                 li = order[p]
@@ -89,6 +92,7 @@ def _relax(x, y, th, lfrom, lto, ld, lhead, lface, loops, corr, robust=0.0):  # 
                     c = corr * robust * robust / (robust * robust + r2)
                 dx = (x[e1] - lx) * c
                 dy = (y[e1] - ly) * c
+                before = (x[e0], y[e0], x[e1], y[e1], th[e0], th[e1])
                 x[e0] += dx
                 y[e0] += dy
                 x[e1] -= dx
@@ -96,6 +100,10 @@ def _relax(x, y, th, lfrom, lto, ld, lhead, lface, loops, corr, robust=0.0):  # 
                 df = _clip(th[e1] - (th[e0] + lface[li]))
                 th[e0] = _clip(th[e0] + df * c)
                 th[e1] = _clip(th[e1] - df * c)
+                if not changed and before != (x[e0], y[e0], x[e1], y[e1], th[e0], th[e1]):
+                    changed = True
+        if not changed:
+            break
 
 
 def poses_on_map(nodes: dict[int, tuple[float, float, float]], exp_ids: np.ndarray,

@@ -119,6 +119,25 @@ def test_compiled_match_equals_brute_force_including_ties(panoramic):
     assert (ti, err) == (2, 0.0)
 
 
+@pytest.mark.parametrize("panoramic", [False, True])
+def test_every_templates_error_agrees_with_the_best_match(panoramic):
+    # errors(t) is compare's comparison for all templates (no mean pre-filter, no early stop): its
+    # minimum is compare's best template with the same error and relative_rad
+    rng = np.random.default_rng(5)
+    lv = LocalViewCells(template_x_size=12, template_y_size=3, vt_shift_match=3, vt_step_match=1,
+                        vt_match_threshold=10.0, vt_panoramic=panoramic)
+    base = rng.random((3, 12))
+    for _ in range(6):
+        lv.add_template(np.clip(base + rng.normal(0, 0.1, base.shape), 0, 1))
+    for _ in range(10):
+        q = np.roll(np.clip(base + rng.normal(0, 0.1, base.shape), 0, 1), int(rng.integers(0, 12)), axis=1)
+        errs, rads = lv.errors(q)
+        ti, err, rad = lv.compare(q)
+        assert errs.shape == rads.shape == (6,)
+        assert int(np.argmin(errs)) == ti and errs[ti] == pytest.approx(err, abs=1e-12)
+        assert rads[ti] == pytest.approx(rad, abs=1e-12) and (panoramic or rad == 0.0)
+
+
 def test_patch_normalisation_clamps_window_indices_like_the_cpp():
     lv = LocalViewCells(template_x_size=3, template_y_size=1, vt_shift_match=0, vt_step_match=1,
                         vt_patch_normalise=1)

@@ -23,6 +23,8 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from .sequence import refs_consistent
+
 
 class PlatformConfig(BaseModel):
     """What a user knows about the robot and its world: physical quantities, not thresholds."""
@@ -157,15 +159,13 @@ class RunCalibration:
             self.history = deque(self.history, maxlen=max(n, 1))
         ok = ref >= 0
         if ok and n:
-            by_frame = {f: (m, c) for f, m, c in self.history}
-            total = confidence
-            for i in range(1, n + 1):
-                m, c = by_frame.get(t - i, (-1, -math.inf))
-                if m < 0 or abs(ref - m) > i * self.max_step + self.slack:
-                    ok = False
-                    break
-                total += c
-            ok = ok and total / (n + 1) >= 0
+            ok = refs_consistent({f: m for f, m, _ in self.history}, t, ref, n, self.max_step, self.slack)
+            if ok:
+                conf = {f: c for f, _, c in self.history}
+                total = confidence
+                for i in range(1, n + 1):
+                    total += conf[t - i]
+                ok = total / (n + 1) >= 0
         else:
             ok = ok and confidence >= 0
         self.history.append((t, ref, confidence if ref >= 0 else -math.inf))

@@ -194,7 +194,7 @@ class LocalViewFrontEnd:
         cells, cal = self.cells, self.calibration
         cal.on_stamp(stamp)
         t = cells.view_template(pixels)
-        err, rad = self._errors(t)
+        err, rad = cells.errors(t)
         born = np.array([c[0] for c in self.created], dtype=np.float64)
         old = np.flatnonzero(born <= stamp - cal.min_gap_s)
         recent = None if self.prev < 0 else -float(err[self.prev])
@@ -216,29 +216,6 @@ class LocalViewFrontEnd:
             cells.last_error = float(err[k])
             cells.current_id, cells.relative_rad = k, float(rad[k])
         return cells.current_id, cells.relative_rad
-
-    def _errors(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Every template's mean absolute difference to ``t`` at its best offset, and that offset's
-        relative_rad (the same comparison as OpenRatSLAM's, without its early stop)."""
-        c = self.config
-        temps = self.cells.templates
-        if temps.shape[0] == 0:
-            return np.zeros(0), np.zeros(0)
-        X = c.template_x_size
-        if c.vt_panoramic:
-            offs = list(range(0, X, c.vt_step_match))
-            errs = np.stack([np.abs(t[None] - np.roll(temps, -o, axis=2)).mean(axis=(1, 2)) for o in offs])
-        else:
-            S, W = c.vt_shift_match, X - 2 * c.vt_shift_match
-            offs = list(range(0, 2 * S + 1, c.vt_step_match))
-            cur = t[:, S:S + W]
-            errs = np.stack([np.abs(cur[None] - temps[:, :, o:o + W]).mean(axis=(1, 2)) for o in offs])
-        best = np.argmin(errs, axis=0)
-        rad = np.zeros(temps.shape[0])
-        if c.vt_panoramic:
-            rad = np.array([offs[i] for i in best], dtype=np.float64) / X * 2 * np.pi
-            rad[rad > np.pi] -= 2 * np.pi
-        return errs[best, np.arange(temps.shape[0])], rad
 
     def warm_up(self) -> None:
         self.cells.warm_up()

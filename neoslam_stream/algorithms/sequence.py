@@ -16,6 +16,7 @@ makes the back end jump back). ``length = 0`` and ``min_gap_frames = 0`` switch 
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Mapping
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
@@ -34,6 +35,16 @@ class SequenceConfig(BaseModel):
     min_gap_frames: int = Field(0, ge=0, description="intervals opened fewer frames ago are no candidates")
 
 
+def refs_consistent(refs: Mapping[int, int], t: int, ref: int, length: int, max_step: float, slack: int) -> bool:
+    """Whether frames t-1 .. t-length all had a reference frame (``refs``: frame -> reference,
+    -1 for none) within i * max_step + slack of frame t's ``ref``."""
+    for i in range(1, length + 1):
+        m = refs.get(t - i, -1)
+        if m < 0 or abs(ref - m) > i * max_step + slack:
+            return False
+    return True
+
+
 class SequenceFilter:
     """Accepts a loop closure only after a run of consistent candidates (module docstring)."""
 
@@ -50,12 +61,7 @@ class SequenceFilter:
     def consistent(self, t: int, ref: int) -> bool:
         """Whether frames t-1 .. t-length all had candidates within i*max_step + slack of ``ref``."""
         cfg = self.config
-        by_frame = dict(self.history)
-        for i in range(1, cfg.length + 1):
-            m = by_frame.get(t - i, -1)
-            if m < 0 or abs(ref - m) > i * cfg.max_step + cfg.slack:
-                return False
-        return True
+        return refs_consistent(dict(self.history), t, ref, cfg.length, cfg.max_step, cfg.slack)
 
     def check(self, t: int, ref: int) -> bool:
         """Record frame t's candidate (``ref`` = its reference frame, -1 for none) and return

@@ -192,8 +192,7 @@ class SpatialViewCells:
         best, best_score, second, second_score = -1, 0.0, -1, 0.0
         a = None
         if limit > 0:
-            n = len(y)
-            norm = self.index.all_scores(y)[:k_all] * (n / np.maximum(self.index.union_sizes(k_all), n))
+            norm = self._normalised_scores(y, k_all)
             recent = float(norm[k_all - 2]) if k_all >= 2 else None  # the view a moment ago
             a = cal.assess(norm[:limit], np.asarray(self.interval_stamp[:limit]), recent)
             if a is not None:
@@ -204,11 +203,16 @@ class SpatialViewCells:
         self.runner_up = (second, second_score)
         return loop, best, best_score, second, second_score
 
+    def _normalised_scores(self, y: np.ndarray, limit: int) -> np.ndarray:
+        """s_k |y_t| / max(|Y_k|, |y_t|) of the intervals k < limit (a new array): a long interval's
+        union, which overlaps everything a little, is no hub."""
+        n = len(y)
+        return self.index.all_scores(y)[:limit] * (n / np.maximum(self.index.union_sizes(limit), n))
+
     def _top2_normalised(self, y: np.ndarray, limit: int) -> tuple[int, float, int, float]:
         """The top two candidates k < limit by s_k |y_t| / max(|Y_k|, |y_t|) (``union_normalised``;
         ties: lowest index), with their normalised scores."""
-        n = len(y)
-        norm = self.index.all_scores(y)[:limit] * (n / np.maximum(self.index.union_sizes(limit), n))
+        norm = self._normalised_scores(y, limit)
         best = int(np.argmax(norm))  # first maximum = lowest index
         best_score = float(norm[best])
         second, second_score = -1, 0.0

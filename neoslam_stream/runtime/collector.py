@@ -43,7 +43,7 @@ def _add_lives(earlier: dict[str, Any], now: dict[str, Any]) -> dict[str, Any]:
     for k in CUMULATIVE_MAPS:
         if k in earlier or k in now:
             out[k] = _add_maps(earlier.get(k) or {}, now.get(k) or {})
-    if "published_ranges" in earlier:  # a source started again (a rollback): every frame it published
+    if "published_ranges" in earlier or "published_ranges" in now:  # a source started again: every frame it published
         out.update(_merge_source_lives(earlier, now))
     inputs = {t: dict(i) for t, i in (now.get("inputs") or {}).items()}
     for t, i in (earlier.get("inputs") or {}).items():
@@ -122,8 +122,6 @@ class StatsCollector:
             if raw_old is None:
                 self.lives[name] = 1
             elif data.get("pid") is not None and raw_old.get("pid") not in (None, data.get("pid")):
-                if name == "source" and "published_ranges" in raw_old:  # its frames are merged
-                    self.earlier.setdefault(name, {}).setdefault("published_ranges", [])
                 self.earlier[name] = _add_lives(self.earlier.get(name, {}), raw_old)
                 self.spans.setdefault(name, []).append([int(raw_old.get("first_frame", -1)),
                                                         int(raw_old.get("last_frame", -1))])

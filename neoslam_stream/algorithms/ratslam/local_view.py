@@ -100,6 +100,12 @@ def _best_match(templates, keep, cur, shift, step, panoramic):  # pragma: no cov
     return bt, bo, best
 
 
+def offset_rad(off: Any, x_size: int) -> np.ndarray:
+    """A panoramic template's column offset as relative_rad, in (-pi, pi]."""
+    rad = np.asarray(off, dtype=np.float64) / x_size * 2 * math.pi
+    return np.where(rad > math.pi, rad - 2 * math.pi, rad)
+
+
 def _seq_mean(t: np.ndarray) -> float:
     """Mean summed left to right, as the C++ loop does (np.mean's pairwise sum can differ in the
     last bit, which matters at the mean pre-filter's boundary)."""
@@ -203,11 +209,29 @@ class LocalViewCells:
         ti, off, total = _best_match(self._store, keep.astype(np.int64), np.ascontiguousarray(t),
                                      c.vt_shift_match, c.vt_step_match, c.vt_panoramic)
         if c.vt_panoramic:
-            rad = off / X * 2 * math.pi
-            if rad > math.pi:
-                rad -= 2 * math.pi
-            return int(ti), float(total / (X * Y)), rad
+            return int(ti), float(total / (X * Y)), float(offset_rad(off, X))
         return int(ti), float(total / (X * Y - 2 * c.vt_shift_match * Y)), 0.0
+
+    def errors(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Every template's mean absolute difference to ``t`` at its best offset, and that offset's
+        relative_rad: :meth:`compare`'s comparison for all templates, without its mean pre-filter
+        and early stop (what a decision from the run's own statistics needs)."""
+        c = self.config
+        temps = self.templates
+        if temps.shape[0] == 0:
+            return np.zeros(0), np.zeros(0)
+        X = c.template_x_size
+        if c.vt_panoramic:
+            offs = list(range(0, X, c.vt_step_match))
+            errs = np.stack([np.abs(t[None] - np.roll(temps, -o, axis=2)).mean(axis=(1, 2)) for o in offs])
+        else:
+            S, W = c.vt_shift_match, X - 2 * c.vt_shift_match
+            offs = list(range(0, 2 * S + 1, c.vt_step_match))
+            cur = t[:, S:S + W]
+            errs = np.stack([np.abs(cur[None] - temps[:, :, o:o + W]).mean(axis=(1, 2)) for o in offs])
+        best = np.argmin(errs, axis=0)
+        rad = offset_rad(np.asarray(offs)[best], X) if c.vt_panoramic else np.zeros(temps.shape[0])
+        return errs[best, np.arange(temps.shape[0])], rad
 
     def on_image(self, grey: np.ndarray) -> tuple[int, float]:
         """Template id for this image (existing or new) and its relative_rad."""

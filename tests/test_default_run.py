@@ -4,8 +4,8 @@ The paper's profile: `neoslam run -c paper` (pipeline topology, one process per 
 in-process API give exactly the templates and trajectory, and the same map (coordinates to 1e-9),
 that the default gave before the package was split into layers; the monolithic topology and the
 in-process API give the same first rows. `configs/paper.yaml` holds those values: the default may change, the paper's
-profile may not. The default profile's reference run is checked by tests/test_map_quality.py, which
-runs the same 1000 frames for its closures."""
+profile may not. The default profile's reference run (default_profile_1000) is checked through
+processes by tests/test_end_to_end.py, with its closures, and its first rows here in-process."""
 
 from __future__ import annotations
 
@@ -19,6 +19,7 @@ import pytest
 from neoslam_stream.cli import main
 
 REF = Path(__file__).resolve().parent / "data" / "default_run_1000"
+REF_DEFAULT = Path(__file__).resolve().parent / "data" / "default_profile_1000"
 FILES = ("templates.csv", "trajectory.tum", "map.json")
 FRAMES = 1000
 
@@ -79,14 +80,15 @@ def test_the_monolithic_topology_gives_the_reference_rows(tmp_path):
         assert got == (REF / name).read_text().splitlines()[: n + header], name
 
 
-def test_the_in_process_api_gives_the_reference_rows(tmp_path):
+@pytest.mark.parametrize(("profile", "ref"), [("paper", REF), ("default", REF_DEFAULT)])
+def test_the_in_process_api_gives_the_reference_rows(tmp_path, profile, ref):
     """The in-process API steps the same cores as the nodes: the reference's first ``n`` rows of
     templates.csv and trajectory.tum byte for byte (the rows depend on earlier frames only)."""
     from neoslam_stream import NeoSLAM, load_config
     from neoslam_stream.sources.synthetic import SyntheticWorldSource
 
     n = 400
-    cfg = load_config("paper")
+    cfg = load_config(profile)
     slam = NeoSLAM(cfg, run_dir=tmp_path)
     for sf in SyntheticWorldSource(**cfg.source.params):
         if sf.frame >= n:
@@ -98,4 +100,4 @@ def test_the_in_process_api_gives_the_reference_rows(tmp_path):
     for name, header in (("templates.csv", 1), ("trajectory.tum", 0)):
         got = (tmp_path / name).read_text().splitlines()
         assert len(got) == n + header, name
-        assert got == (REF / name).read_text().splitlines()[: n + header], name
+        assert got == (ref / name).read_text().splitlines()[: n + header], name

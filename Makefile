@@ -44,7 +44,9 @@ bench: setup
 	$(BIN)/python bench/stage_a.py
 	$(BIN)/python bench/cores.py
 	$(BIN)/python bench/projector_paths.py
-	$(BIN)/python bench/soak.py
+	$(BIN)/python bench/relaxation.py
+	$(BIN)/python bench/soak.py --backbone random_alexnet
+	$(BIN)/python bench/soak.py --out bench/results/soak_default.json
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .ruff_cache

@@ -8,7 +8,7 @@ validation and test parts are disjoint (``PARTS``). Front-end figures: loop-clos
 recall through the real A -> B -> C -> D (docs/mapping.md defines them per data set); the
 synthetic route also runs the back end (trajectory errors), and the TUC corridor the back end
 alone. Writes bench/results/generalisation.json; ``--table`` prints the README's table.
-Run: ``.venv/bin/python bench/generalisation.py [--only nordland,synthetic,proxies,tuc,route] [--table]``.
+Run: ``.venv/bin/python bench/generalisation.py [--only nordland,synthetic,proxies,tuc,route,route2] [--table]``.
 """
 
 from __future__ import annotations
@@ -146,23 +146,31 @@ def frontends(parts: list[str]) -> dict[str, Any]:
 
 def tuc() -> dict[str, Any]:
     """The corridor with the default's back end (its platform under tuc.yaml's protocol) and with
-    the paper's settings (tuc_paper.yaml)."""
+    the paper's settings (tuc_paper.yaml): the whole run, and its second half run alone
+    (``*_second_half``), the held-out part: the back end's constants were chosen on the first half."""
     from bench_settings import back_end_sections
-    from tuc_corridor import run
+    from tuc_corridor import load, run
 
+    odom = load()[0]
+    half = float(odom[0, 0] + odom[-1, 0]) / 2
     res = {}
     for name in ("default", "paper"):
         settings = "tuc" if name == "default" else "tuc_paper"
         proto = load_settings(settings)["protocol"]
-        r = run(*back_end_sections(settings), proto["threshold"], proto["min_gap_s"])
-        res[name] = {k: v for k, v in r.items() if not hasattr(v, "shape")}
-        res[name]["map_vs_odometry"] = r["map_mean_m"] / r["odometry_mean_m"]
+        for key, start in ((name, None), (f"{name}_second_half", half)):
+            r = run(*back_end_sections(settings), proto["threshold"], proto["min_gap_s"], start_s=start)
+            res[key] = {k: v for k, v in r.items() if not hasattr(v, "shape")}
+            res[key]["map_vs_odometry"] = r["map_mean_m"] / r["odometry_mean_m"]
+            res[key]["from_s"] = start
+            print("tuc", key, json.dumps({k: res[key][k] for k in ("map_mean_m", "odometry_mean_m",
+                                                                   "map_vs_odometry")}), flush=True)
     return res
 
 
-def route() -> dict[str, Any]:
-    """The synthetic route of world 0 with its back end, through the in-process API (bench/e2e.py's
-    runner): trajectory errors, the online floor, closures."""
+def route(seed: int = 0) -> dict[str, Any]:
+    """A synthetic world's route (world 0: the default route; world 2: the other held-out world) with
+    its back end, through the in-process API (bench/e2e.py's runner): trajectory errors, the online
+    floor, closures."""
     from e2e import run_inprocess
 
     from neoslam_stream.evaluation import evaluate_run
@@ -170,21 +178,21 @@ def route() -> dict[str, Any]:
     res = {}
     for name, pipeline, profile in (("default", "neoslam", "default"), ("paper", "neoslam", "paper"),
                                     ("ratslam", "ratslam", "default")):
-        cfg = load_config(profile, {"run": {"pipeline": pipeline}})
-        run_dir = CACHE / "route" / name
+        cfg = load_config(profile, {"run": {"pipeline": pipeline}, "source": {"params": {"seed": seed}}})
+        run_dir = CACHE / ("route" if seed == 0 else f"route{seed}") / name
         run_inprocess(cfg, run_dir)
         ev = evaluate_run(run_dir, radius=1.0, plot=False)
         res[name] = {"ape_mean_m": ev["trajectory_ape"]["mean_m"],
                      "ape_on_final_map_m": ev.get("map_trajectory_ape", {}).get("mean_m"),
                      "online_floor_m": ev.get("online_floor", {}).get("ape_mean_m"),
                      "odometry_mean_m": ev["odometry_ape"]["mean_m"], **ev["loop_closures"]}
-        print("route", name, json.dumps(res[name], default=str)[:300], flush=True)
+        print(f"route{seed}", name, json.dumps(res[name], default=str)[:300], flush=True)
     return res
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--only", default="choice,nordland,synthetic,proxies,tuc,route")
+    ap.add_argument("--only", default="choice,nordland,synthetic,proxies,tuc,route,route2")
     ap.add_argument("--out", default=str(RESULTS / "generalisation.json"))
     ap.add_argument("--table", action="store_true", help="print the README table from --out and stop")
     args = ap.parse_args()
@@ -211,7 +219,9 @@ def main() -> None:
     if "tuc" in only:
         res["tuc"] = tuc()
     if "route" in only:
-        res["route"] = route()
+        res["route"] = route(0)
+    if "route2" in only:
+        res["route_2"] = route(2)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     out_path.write_text(json.dumps(res, indent=1, default=float))
     print(f"wrote {out_path}")

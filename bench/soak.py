@@ -7,7 +7,8 @@ when the RSS curve flattens: the report gives the growth rate over the second ha
 (MB per hour) next to the state the stages keep (TM segments/synapses, spatial-view intervals,
 experiences), which must grow with new places only.
 
-Run: ``.venv/bin/python bench/soak.py [--duration 3600] [--rate 30] [--matrix-dtype int8] [--out bench/results/soak.json]``.
+Run: ``.venv/bin/python bench/soak.py [--duration 3600] [--rate 30] [--backbone random_alexnet] [--matrix-dtype int8] [--out bench/results/soak.json]``
+(the default config with its own backbone unless ``--backbone`` or ``--config`` say otherwise).
 Also writes soak.png next to the JSON.
 """
 
@@ -97,7 +98,9 @@ def main() -> None:
     ap.add_argument("--rate", type=float, default=30.0)
     ap.add_argument("--every", type=float, default=60.0, help="seconds between two samples")
     ap.add_argument("--config", default=None)
-    ap.add_argument("--backbone", default="random_alexnet")
+    ap.add_argument("--backbone", default=None,
+                    help="feature backbone (default: the config's, as a user runs it; random_alexnet: "
+                         "the AlexNet-cost backbone of the paper's comparison)")
     ap.add_argument("--matrix-dtype", choices=["float32", "float16", "int8"],
                     help="storage of B's Gaussian matrix (projector.matrix_dtype; default: the config's)")
     ap.add_argument("--feature-bits", type=int, choices=[16, 7],

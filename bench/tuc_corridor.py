@@ -42,8 +42,10 @@ def load_ground_truth(path=None) -> np.ndarray:
     return gt[np.argsort(gt[:, 0], kind="stable")]
 
 
-def load(limit_s: float | None = None):
-    """Odometry rows (t, vx, wz), loop candidates (t1, t2, similarity) and ground truth (t, x, y)."""
+def load(limit_s: float | None = None, start_s: float | None = None):
+    """Odometry rows (t, vx, wz), loop candidates (t1, t2, similarity) and ground truth (t, x, y),
+    from ``start_s`` (a run that starts there: candidates whose both frames are that late) to
+    ``limit_s``."""
     odom, loops = [], []
     for line in open(DATA / "Corridor_Input.txt"):
         p = line.split()
@@ -60,6 +62,10 @@ def load(limit_s: float | None = None):
         odom = odom[odom[:, 0] <= limit_s]
         loops = loops[loops[:, 0] <= limit_s]
         gt = gt[gt[:, 0] <= limit_s]
+    if start_s is not None:
+        odom = odom[odom[:, 0] >= start_s]
+        loops = loops[np.minimum(loops[:, 0], loops[:, 1]) >= start_s]
+        gt = gt[gt[:, 0] >= start_s]
     return odom, loops, gt
 
 
@@ -109,13 +115,14 @@ def align_rigid_2d(est: np.ndarray, ref: np.ndarray) -> np.ndarray:
 
 
 def run(pose_cells: dict, experience_map: dict, threshold: float = 0.8, min_gap_s: float = 60.0,
-        limit_s: float | None = None, sequence: dict | None = None) -> dict:
+        limit_s: float | None = None, sequence: dict | None = None, start_s: float | None = None) -> dict:
     """The corridor run through the pose-cell stage (``pose_cells``: that config section, with its
     ``odometry_gate`` and ``odometry_bias``) and an experience map (``experience_map``); the
     templates that arrive between two odometry steps reach the stage first, as in a run.
     ``sequence``: see :func:`templates_from_loops`. ``map_on_final_mean_m``: the error of every
-    step re-expressed on the final map (as trajectory_map.tum)."""
-    odom, loops, gt = load(limit_s)
+    step re-expressed on the final map (as trajectory_map.tum). ``start_s`` / ``limit_s``: a run
+    of that part of the recording alone (:func:`load`), e.g. the half that chose no constant."""
+    odom, loops, gt = load(limit_s, start_s)
     ids = templates_from_loops(loops, threshold, min_gap_s, sequence)
     frame_times = np.array(sorted(ids))
     stage = PoseCellStage(pose_cells)

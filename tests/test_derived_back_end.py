@@ -18,7 +18,7 @@ def test_synthetic_world_a_ring_in_a_small_area():
     assert math.isclose(pc["pc_cell_x_size"], 0.3)
     assert pc["odometry_bias"] == {"enabled": True, "samples_from": "templates", "bidirectional": False}
     assert pc["odometry_gate"]["radius_m"] == 0.0
-    assert em == {"exp_loops": 1000, "exp_initial_em_deg": 0.0}
+    assert em == {"relaxation": "least_squares", "exp_initial_em_deg": 0.0}
 
 
 def test_tuc_corridor_there_and_back_in_a_long_area():

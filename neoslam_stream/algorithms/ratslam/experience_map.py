@@ -6,7 +6,8 @@ exp_initial_em_deg) since the current experience. CREATE_NODE places a node at t
 that displacement and links them; CREATE_EDGE links the current experience to an existing one (no
 duplicate in either direction); both make the destination current (heading = its heading +
 relative_rad). After every action ``exp_loops`` Gauss-Seidel sweeps in node and link order pull
-both ends of each link by ``exp_correction`` of its position and heading error.
+both ends of each link by ``exp_correction`` of its position and heading error; or, with
+``relaxation: least_squares``, each new loop link re-solves the whole map exactly (graph_solve.py).
 
 ``openratslam_compat=True`` keeps three C++ quirks that the default fixes (marked "fix n" below,
 tabled in docs/ratslam.md). The map maps the pose cells' experience ids onto its own indices, so a
@@ -17,16 +18,17 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numba import njit
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from .._config import make_config
 from ..errors import InvalidInput
 from .actions import CREATE_EDGE, CREATE_NODE, SET_NODE
 from .angles import clip_pi
+from .graph_solve import relax_least_squares
 
 
 class ExperienceMapConfig(BaseModel):
@@ -42,6 +44,18 @@ class ExperienceMapConfig(BaseModel):
     #: of its position error r, so a wrong loop closure (r stays large) moves the map by at most
     #: exp_correction * k / 2 per sweep; 0: every link pulls by exp_correction (OpenRatSLAM)
     exp_robust_m: float = Field(0.0, ge=0)
+    #: ``sweeps``: OpenRatSLAM's exp_loops sweeps after every action; ``least_squares``: after an
+    #: action that adds a loop link, the headings and positions that agree best with every link,
+    #: solved exactly (graph_solve.py), and nothing after the others, whose new experience lies
+    #: where its link says; exp_loops and exp_correction are then unused
+    relaxation: Literal["sweeps", "least_squares"] = "sweeps"
+
+    @model_validator(mode="after")
+    def _robust_needs_sweeps(self) -> ExperienceMapConfig:
+        if self.relaxation == "least_squares" and self.exp_robust_m > 0:
+            raise ValueError("exp_robust_m weights the sweeps' pulls; relaxation least_squares has none "
+                             "(set exp_robust_m: 0 or relaxation: sweeps)")
+        return self
 
 
 def signed_delta(a1: float, a2: float) -> float:
@@ -158,6 +172,7 @@ class ExperienceMap:
         self.accum_facing = math.radians(self.config.exp_initial_em_deg)
         self.relax_time_s = 0.0
         self.repaired_actions = 0
+        self._loop_linked = False  # a link to an experience that existed: least squares re-solves
 
     @property
     def cfg(self) -> ExperienceMapConfig:
@@ -230,7 +245,7 @@ class ExperienceMap:
         self.ids.append(exp_id)
         self.index[exp_id] = i
         if self._cur >= 0:
-            self._link(self._cur, i, 0.0)
+            self._link(self._cur, i, 0.0, closes_loop=False)
         self._set(i, 0.0)
 
     def create_link(self, a: int, b: int, rel_rad: float) -> None:
@@ -238,7 +253,8 @@ class ExperienceMap:
         no duplicate in either direction)."""
         self._link(self._idx(a), self._idx(b), rel_rad)
 
-    def _link(self, a: int, b: int, rel_rad: float) -> None:
+    def _link(self, a: int, b: int, rel_rad: float, closes_loop: bool = True) -> None:
+        """``closes_loop`` False: b was just placed where this link says (no map change needed)."""
         if a == b or (a, b) in self.link_set or (b, a) in self.link_set:
             return
         th_a = float(self._nodes[a, 2])
@@ -251,6 +267,7 @@ class ExperienceMap:
         self._lv[j] = (d, heading, facing, self.accum_t)
         self._m += 1
         self.link_set.add((a, b))
+        self._loop_linked |= closes_loop
 
     def set_experience(self, exp_id: int, rel_rad: float) -> None:
         """Make an experience current: zero the accumulators, heading = its heading + rel_rad."""
@@ -298,16 +315,24 @@ class ExperienceMap:
         self.iterate()
 
     def iterate(self) -> None:
-        """One relaxation: exp_loops sequential sweeps with exp_correction (numba)."""
-        if self._m == 0 or self.config.exp_loops == 0:
+        """One relaxation: exp_loops sequential sweeps with exp_correction (numba), or with
+        ``relaxation: least_squares`` the exact solve when a loop link came since the last one."""
+        least_squares = self.config.relaxation == "least_squares"
+        if self._m == 0 or (not least_squares and self.config.exp_loops == 0):
+            return
+        if least_squares and not self._loop_linked:
             return
         t0 = time.perf_counter()
         nodes = self._nodes
         x, y, th = nodes[: self._n, 0].copy(), nodes[: self._n, 1].copy(), nodes[: self._n, 2].copy()
         lf, lv = self._lf[: self._m], self._lv[: self._m]
-        _relax(x, y, th, np.ascontiguousarray(lf[:, 0]), np.ascontiguousarray(lf[:, 1]),
-               np.ascontiguousarray(lv[:, 0]), np.ascontiguousarray(lv[:, 1]), np.ascontiguousarray(lv[:, 2]),
-               self.config.exp_loops, self.config.exp_correction, self.config.exp_robust_m)
+        if least_squares:
+            self._loop_linked = False
+            x, y, th = relax_least_squares(x, y, th, lf[:, 0], lf[:, 1], lv[:, 0], lv[:, 1], lv[:, 2])
+        else:
+            _relax(x, y, th, np.ascontiguousarray(lf[:, 0]), np.ascontiguousarray(lf[:, 1]),
+                   np.ascontiguousarray(lv[:, 0]), np.ascontiguousarray(lv[:, 1]), np.ascontiguousarray(lv[:, 2]),
+                   self.config.exp_loops, self.config.exp_correction, self.config.exp_robust_m)
         nodes[: self._n, 0], nodes[: self._n, 1], nodes[: self._n, 2] = x, y, th
         self.relax_time_s = time.perf_counter() - t0
 

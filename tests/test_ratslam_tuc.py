@@ -69,3 +69,14 @@ def test_ground_truth_reader_keeps_position_rows_only():
     assert 500.0 < odo_len < 2500.0
     assert np.hypot(np.diff(gt[:, 1]), np.diff(gt[:, 2])).max() < 0.5  # 0.2 s apart: < 2.5 m/s
     assert abs(gt_len - odo_len) < 0.1 * odo_len, (gt_len, odo_len)
+
+
+def test_a_run_from_the_middle_sees_nothing_earlier():
+    # the held-out half (bench/generalisation.py's tuc "*_second_half") is a run of its own: no
+    # odometry, ground truth or loop candidate that reaches back before its start
+    odom_all = tuc.load()[0]
+    half = float(odom_all[0, 0] + odom_all[-1, 0]) / 2
+    odom, loops, gt = tuc.load(start_s=half)
+    assert 0 < len(odom) < len(odom_all) and odom[0, 0] >= half and gt[:, 0].min() >= half
+    assert len(loops) > 0 and loops[:, :2].min() >= half
+    assert len(odom) + len(tuc.load(limit_s=half)[0]) >= len(odom_all)  # the halves cover the run

@@ -149,10 +149,9 @@ def tuc() -> dict[str, Any]:
     the paper's settings (tuc_paper.yaml): the whole run, and its second half run alone
     (``*_second_half``), the held-out part: the back end's constants were chosen on the first half."""
     from bench_settings import back_end_sections
-    from tuc_corridor import load, run
+    from tuc_corridor import halfway_s, run
 
-    odom = load()[0]
-    half = float(odom[0, 0] + odom[-1, 0]) / 2
+    half = halfway_s()
     res = {}
     for name in ("default", "paper"):
         settings = "tuc" if name == "default" else "tuc_paper"

@@ -27,17 +27,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 
 from neoslam_stream.algorithms.ratslam.experience_map import ExperienceMap, poses_on_map  # noqa: E402
-from neoslam_stream.evaluation import best_rotation_2d  # noqa: E402
+from neoslam_stream.evaluation import ape  # noqa: E402
 
 SWEEPS = (20, 50, 100, 200, 300, 500, 1000)
 VALIDATION, TEST = ("synthetic:1", "synthetic:3", "synthetic:4", "tuc:first"), ("synthetic:0", "synthetic:2", "tuc:second")
-
-
-def ape(est: np.ndarray, ref: np.ndarray) -> float:
-    """Mean distance after the rigid 2-D alignment that fits best (as ``neoslam evaluate``)."""
-    mu_e, mu_r = est.mean(0), ref.mean(0)
-    aligned = (est - mu_e) @ best_rotation_2d(est - mu_e, ref - mu_r).T + mu_r
-    return float(np.linalg.norm(aligned - ref, axis=1).mean())
 
 
 def map_input(seed: int) -> dict[str, Any]:
@@ -77,7 +70,7 @@ def replay(inp: dict[str, Any], **relaxation: Any) -> dict[str, float]:
     loc = np.array(local)
     nodes = {em.ids[k]: (em.x[k], em.y[k], em.th[k]) for k in range(em.n_experiences)}
     on_map = poses_on_map(nodes, loc[:, 0].astype(np.int64), loc[:, 1:])[:, :2]
-    return {"online_m": ape(np.array(poses), inp["gt"]), "final_map_m": ape(on_map, inp["gt"]),
+    return {"online_m": ape(np.array(poses), inp["gt"])["mean_m"], "final_map_m": ape(on_map, inp["gt"])["mean_m"],
             "map_seconds": secs, "experiences": em.n_experiences, "links": em.n_links}
 
 
@@ -88,10 +81,9 @@ def variants() -> list[tuple[str, dict[str, Any]]]:
 
 def tuc_halves() -> dict[str, dict[str, Any]]:
     from bench_settings import back_end_sections, load_settings
-    from tuc_corridor import load, run
+    from tuc_corridor import halfway_s, run
 
-    odom = load()[0]
-    half = float(odom[0, 0] + odom[-1, 0]) / 2
+    half = halfway_s()
     pose_cells, em = back_end_sections("tuc")
     proto = load_settings("tuc")["protocol"]
     out: dict[str, dict[str, Any]] = {}

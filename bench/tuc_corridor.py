@@ -69,6 +69,13 @@ def load(limit_s: float | None = None, start_s: float | None = None):
     return odom, loops, gt
 
 
+def halfway_s() -> float:
+    """The middle of the recording's time span: the back end's constants were chosen on the run up
+    to it, and the run from it on is the held-out half."""
+    odom = load()[0]
+    return float(odom[0, 0] + odom[-1, 0]) / 2
+
+
 def templates_from_loops(loops: np.ndarray, threshold: float, min_gap_s: float,
                          sequence: dict | None = None) -> dict[float, int]:
     """time -> template id, in time order. ``sequence``: the parameters of a

@@ -75,7 +75,7 @@ def test_a_run_from_the_middle_sees_nothing_earlier():
     # the held-out half (bench/generalisation.py's tuc "*_second_half") is a run of its own: no
     # odometry, ground truth or loop candidate that reaches back before its start
     odom_all = tuc.load()[0]
-    half = float(odom_all[0, 0] + odom_all[-1, 0]) / 2
+    half = tuc.halfway_s()
     odom, loops, gt = tuc.load(start_s=half)
     assert 0 < len(odom) < len(odom_all) and odom[0, 0] >= half and gt[:, 0].min() >= half
     assert len(loops) > 0 and loops[:, :2].min() >= half

@@ -23,6 +23,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from ._config import make_config
 from .errors import InvalidInput
+from .ratslam.angles import wrap_pi
 
 
 class OracleConfig(BaseModel):
@@ -60,7 +61,7 @@ class OracleTemplates:
             raise InvalidInput(f"a true pose must be 3 finite numbers (x, y, theta), got {pose!r}")
         pl = self.places
         dist = np.hypot(pl[:, 0] - p[0], pl[:, 1] - p[1])
-        dth = np.abs(np.remainder(pl[:, 2] - p[2] + math.pi, 2 * math.pi) - math.pi)
+        dth = np.abs(wrap_pi(pl[:, 2] - p[2]))
         cand = np.flatnonzero((dist <= self.radius) & (dth <= self.tolerance + 1e-12))
         second: float | None = None
         if cand.size:

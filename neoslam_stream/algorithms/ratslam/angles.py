@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 
 def clip_pi(a: float) -> float:
     """Wrap into (-pi, pi]."""
@@ -13,3 +15,8 @@ def clip_pi(a: float) -> float:
     while a <= -math.pi:
         a += 2 * math.pi
     return a
+
+
+def wrap_pi(a: np.ndarray) -> np.ndarray:
+    """Wrap every element into [-pi, pi) (arrays; clip_pi's one number lands in (-pi, pi])."""
+    return np.remainder(a + math.pi, 2 * math.pi) - math.pi

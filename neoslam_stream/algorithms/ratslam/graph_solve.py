@@ -23,9 +23,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import splu
 
-
-def _wrap(a: np.ndarray) -> np.ndarray:
-    return (a + np.pi) % (2 * np.pi) - np.pi
+from .angles import wrap_pi
 
 
 def relax_least_squares(x: np.ndarray, y: np.ndarray, th: np.ndarray, lfrom: np.ndarray, lto: np.ndarray,
@@ -53,9 +51,9 @@ def relax_least_squares(x: np.ndarray, y: np.ndarray, th: np.ndarray, lfrom: np.
         return out
 
     residual = th[lto] - th[lfrom] - lface
-    th_new = solve(lface + (residual - _wrap(residual)))
+    th_new = solve(lface + (residual - wrap_pi(residual)))
     # each part's mean heading stays (circular mean of the change)
-    turn = _wrap(th - th_new)
+    turn = wrap_pi(th - th_new)
     for k in range(n_parts):
         sel = part == k
         th_new[sel] += np.arctan2(np.sin(turn[sel]).sum(), np.cos(turn[sel]).sum())
@@ -65,4 +63,4 @@ def relax_least_squares(x: np.ndarray, y: np.ndarray, th: np.ndarray, lfrom: np.
         sel = part == k
         x_new[sel] += x[sel].mean() - x_new[sel].mean()
         y_new[sel] += y[sel].mean() - y_new[sel].mean()
-    return x_new, y_new, _wrap(th_new)
+    return x_new, y_new, wrap_pi(th_new)

@@ -45,6 +45,7 @@ bench: setup
 	$(BIN)/python bench/cores.py
 	$(BIN)/python bench/projector_paths.py
 	$(BIN)/python bench/relaxation.py
+	$(BIN)/python bench/passes.py
 	$(BIN)/python bench/soak.py --backbone random_alexnet
 	$(BIN)/python bench/soak.py --out bench/results/soak_default.json
 

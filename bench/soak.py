@@ -57,6 +57,29 @@ def minutes(stats_path: Path, every_s: float) -> list[dict]:
     return rows
 
 
+def passes(run_dir: Path) -> list[dict]:
+    """Frames, loop closures and new templates in each pass of the looped synthetic route."""
+    cfg = yaml.safe_load((run_dir / "config.yaml").read_text())
+    if cfg["source"]["kind"] != "synthetic" or not (run_dir / "templates.csv").exists():
+        return []
+    from neoslam_stream.sources.synthetic import SyntheticWorldSource
+
+    route = SyntheticWorldSource(**cfg["source"]["params"]).route_len
+    rows: dict[int, dict] = {}
+    seen: set[int] = set()
+    with open(run_dir / "templates.csv") as f:
+        next(f)
+        for line in f:
+            frame, _, template, closure = line.split(",")[:4]
+            r = rows.setdefault(int(frame) // route, {"frames": 0, "loop_closures": 0, "new_templates": 0})
+            r["frames"] += 1
+            r["loop_closures"] += int(closure)
+            if int(template) not in seen:
+                seen.add(int(template))
+                r["new_templates"] += 1
+    return [{"pass": k + 1, **rows[k]} for k in sorted(rows)]
+
+
 def growth_per_hour(rows: list[dict]) -> float | None:
     pts = [(r["t_s"], r["rss_total_mb"]) for r in rows[len(rows) // 2:]]
     if len(pts) < 2:
@@ -75,7 +98,7 @@ def plot(res: dict, path: Path) -> None:
 
     rows = res["minutes"]
     t = [r["t_s"] / 60 for r in rows]
-    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+    fig, ax = plt.subplots(1, 3 if res.get("passes") else 2, figsize=(16 if res.get("passes") else 11, 4))
     ax[0].plot(t, [r["rss_total_mb"] for r in rows], "k-", label="all workers")
     for name in sorted(rows[-1]["rss_mb"]) if rows else []:
         ax[0].plot(t, [r["rss_mb"].get(name) for r in rows], lw=0.8, label=name)
@@ -85,6 +108,13 @@ def plot(res: dict, path: Path) -> None:
     ax[1].set(xlabel="minutes", ylabel="frames in flight at the sample",
               title=f"{res['frames_out']} of {res['frames_in']} frames at {res['rate']:g} FPS "
                     f"(loss {100 * res['loss']:.3f} %)")
+    if res.get("passes"):
+        ps = res["passes"]
+        k = [r["pass"] for r in ps]
+        ax[2].plot(k, [r["loop_closures"] / r["frames"] for r in ps], "o-", label="loop closures")
+        ax[2].plot(k, [r["new_templates"] / r["frames"] for r in ps], "s-", label="new templates")
+        ax[2].set(xlabel="pass of the route", ylabel="per frame of the pass", title="The map, pass by pass")
+        ax[2].legend(fontsize=7)
     for a in ax:
         a.grid(alpha=0.3)
     fig.tight_layout()
@@ -130,12 +160,15 @@ def main() -> None:
            "rss_total_mb_first": rows[0]["rss_total_mb"] if rows else None,
            "rss_total_mb_last": rows[-1]["rss_total_mb"] if rows else None,
            "rss_growth_mb_per_hour_second_half": growth_per_hour(rows),
-           "stages": row["stages"], "minutes": rows}
+           "stages": row["stages"], "passes": passes(run_dir), "minutes": rows}
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(res, indent=2))
     if rows:
         plot(res, out.with_suffix(".png"))
-    print(json.dumps({k: v for k, v in res.items() if k not in ("minutes", "stages")}, indent=2))
+    print(json.dumps({k: v for k, v in res.items() if k not in ("minutes", "stages", "passes")}, indent=2))
+    for r in res["passes"]:
+        print(f"pass {r['pass']}: {r['frames']} frames, {r['loop_closures']} loop closures, "
+              f"{r['new_templates']} new templates")
 
 
 if __name__ == "__main__":

@@ -118,6 +118,28 @@ def test_d_closes_the_loop_of_a_second_traversal_and_nothing_else():
     assert rep["score_needed"] > rep["unrelated_mean"]
 
 
+def test_a_place_visited_twice_before_closes_whichever_visit_wins():
+    """A third traversal whose frames are each a copy of the first or of the second visit of the
+    place, alternately: the winner flips between two earlier intervals from frame to frame. They
+    are one place (the second visit closed onto the first's template), so the evidence is
+    consistent and the third traversal closes as well as the second, onto the first visit's place."""
+    rng = np.random.default_rng(5)
+    places = _places(80, rng)
+    d = _d()
+    visits = [[_noisy(p, rng, 0.9) for p in places] for _ in range(2)]
+    for i, v in enumerate(visits[0] + visits[1]):
+        d.compute(v, stamp=float(i))
+    second_closed = sum(d.interval_template[80 + i] == d.interval_template[i] for i in range(80))
+    assert second_closed >= 60
+    third = [d.compute(visits[i % 2][i], stamp=160.0 + i) for i in range(80)]
+    closed = [i for i, r in enumerate(third) if r["is_loop_closure"]]
+    assert len(closed) >= second_closed - 5
+    won = [d.interval_start[third[i]["best_interval"]] for i in closed]
+    assert sum(w >= 80 for w in won) >= 20  # the second visit's intervals do win half the time
+    first_frame = {d.interval_template[i]: i for i in range(79, -1, -1)}
+    assert all(first_frame[third[i]["id"]] == i for i in closed)
+
+
 def test_a_run_without_revisit_closes_nothing_and_says_so():
     rng = np.random.default_rng(2)
     d = _d()

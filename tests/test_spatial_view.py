@@ -397,6 +397,9 @@ def test_bit_sliced_search_across_blocks_and_limits_equals_exhaustive_scoring():
             assert got == index.top2_exhaustive(y, limit), (q, limit)
         index.sliced = None  # the cost model picks the bit-sliced count for these real-shaped SDRs
         assert index.top2_bounded(y, k - 3) == index.top2_exhaustive(y, k - 3) and index.last_path == "sliced"
+        # every score (the calibrated decision's): the bit-sliced count equals counting every posting
+        counted = index.all_scores(y, rows=False).copy()
+        assert np.array_equal(index.all_scores(y), counted) and index.last_count_path == "sliced"
     # SDRs spread over all 65536 cells keep short lists, no rows: the posting-list search
     sparse = SpatialViewCells()
     for _ in range(300):

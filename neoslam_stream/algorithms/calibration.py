@@ -151,7 +151,8 @@ class RunCalibration:
         return Assessment(best, s, z, confidence, second, float(scores[second]), mean, sd)
 
     def accept(self, t: int, ref: int, confidence: float) -> bool:
-        """Frame t's best candidate (``ref``: its reference frame, -1 for none) with its confidence:
+        """Frame t's best candidate (``ref``: the first frame of the place it matched, i.e. of its
+        template, so that equivalent visits of one place agree; -1 for none) with its confidence:
         a closure when the L frames before t had consistent references and the mean confidence
         of the L + 1 is >= 0. Call once per frame, in frame order."""
         n = self.sequence_frames

@@ -47,6 +47,8 @@ class IntervalIndex:
         self.dense_min = DENSE_MIN
         #: which search the last query used: "postings" or "sliced"
         self.last_path = "postings"
+        #: how the last :meth:`all_scores` counted: "postings" or "sliced"
+        self.last_count_path = "postings"
         #: postings read and unions verified by the last query's search (bench figures)
         self.last_search = (0, 0)
         #: background merges started
@@ -216,19 +218,36 @@ class IntervalIndex:
         self._reset_linked(1024)
 
     # ---------------------------------------------------------------- queries
-    def all_scores(self, y: np.ndarray) -> np.ndarray:
-        """s_k = |Y_k & y_t| of every interval, from the whole index (O(sum of posting lengths));
-        a scratch array, zeroed again at the next call."""
+    def all_scores(self, y: np.ndarray, rows: bool | None = None) -> np.ndarray:
+        """s_k = |Y_k & y_t| of every interval, from the whole index; a scratch array, zeroed again
+        at the next call. The cells with dense rows are counted bit-sliced (64 intervals a word)
+        when that reads less than their posting lists (the cost model of :meth:`top2_bounded`;
+        ``rows`` True / False: always / never, None: ``sliced``'s setting), the others posting by
+        posting: the same counts either way (``last_count_path`` says which ran)."""
         k_all = self._u_n
         if self._scores.shape[0] < k_all:
             self._scores = np.zeros(max(k_all, 2 * self._scores.shape[0]), dtype=np.int32)
         scores = self._scores[:k_all]
         scores[:] = 0
+        use = self.sliced if rows is None else rows
+        row = self._row_of[y]
+        dense = row > 0
+        n_dense = int(dense.sum())
+        sliced = use is not False and 0 < n_dense <= (1 << SLICES) - 8 and k_all > 0
+        if sliced and use is None:
+            words = (n_dense + 7) // 8 * 8 * ((k_all + 63) // 64)
+            sliced = 3 * words < int(self._count[y[dense]].sum())
+        if sliced:
+            self._dense_capacity(k_all - 1, 0)
+            r = np.sort(row[dense]).astype(np.int64)
+            kern.scores_sliced(np.concatenate([r, np.zeros(-len(r) % 8, np.int64)]), self._dense, k_all, scores)
+            y = y[~dense]
         kern.scores_csr(self._ptr, self._post, y, scores)
         if self._frozen is not None:
             kern.scores_linked(*self._frozen[0], y, scores)
         if self._linked_postings:
             kern.scores_linked(self._pool, self._next, self._head, self._tail, self._fill, y, scores)
+        self.last_count_path = "sliced" if sliced else "postings"
         return scores
 
     def top2(self, y: np.ndarray, limit: int) -> tuple[int, int, int, int]:
@@ -239,8 +258,8 @@ class IntervalIndex:
         return self.top2_bounded(y, limit)
 
     def top2_exhaustive(self, y: np.ndarray, limit: int) -> tuple[int, int, int, int]:
-        """Every s_k from the whole index (O(sum of posting lengths)): the reference."""
-        cand = self.all_scores(y)[:limit]
+        """Every s_k from the whole index, every posting counted: the reference."""
+        cand = self.all_scores(y, rows=False)[:limit]
         best = int(np.argmax(cand))  # first maximum = lowest index
         best_score = int(cand[best])
         second, second_score = -1, 0
@@ -292,8 +311,8 @@ class IntervalIndex:
     def warm_up(self) -> None:
         """Compile (or load from numba's cache) every kernel now, on a throw-away index of the same
         size: the posting-list search on linked then compacted postings, the exhaustive count, and
-        dense rows with the bit-sliced count (on real SDRs they start after thousands of intervals,
-        where compiling them would stall a live frame)."""
+        dense rows with the bit-sliced count, of the top two and of every score (on real SDRs they
+        start after thousands of intervals, where compiling them would stall a live frame)."""
         warm = IntervalIndex(self.sdr_size)
         ys = [np.unique((np.arange(64, dtype=np.int64) + 64 * i) % self.sdr_size).astype(np.int32)
               for i in range(6)]
@@ -312,3 +331,4 @@ class IntervalIndex:
         warm.sliced = True
         add(len(ys), ys[0])
         add(len(ys) + 1, ys[1])
+        warm.all_scores(ys[0])  # the bit-sliced count of every score

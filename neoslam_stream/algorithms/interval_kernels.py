@@ -375,6 +375,66 @@ def _fill_dense_linked(b, row, dense, pool, nxt, head, tail, fill):  # pragma: n
         blk = nxt[blk]
 
 
+@njit(cache=True, inline="always")
+def _block_planes(dblk, rows, nw, planes):  # pragma: no cover - compiled
+    """Count ``rows`` (dense rows of one block, padded to a multiple of 8 with the all-zero row 0)
+    into ``planes``: SLICES bit planes of the first ``nw`` words, 8 rows at a time through a
+    carry-save adder tree (64 intervals per machine word; the loops vectorise)."""
+    # the counter planes are allocated here, not passed in: the compiler then knows they alias no
+    # row, which is what lets it vectorise the adder loop
+    c0 = np.zeros(SLICE_WORDS, np.uint64)
+    c1 = np.zeros(SLICE_WORDS, np.uint64)
+    c2 = np.zeros(SLICE_WORDS, np.uint64)
+    c3 = np.zeros(SLICE_WORDS, np.uint64)
+    c4 = np.zeros(SLICE_WORDS, np.uint64)
+    c5 = np.zeros(SLICE_WORDS, np.uint64)
+    c6 = np.zeros(SLICE_WORDS, np.uint64)
+    c7 = np.zeros(SLICE_WORDS, np.uint64)
+    c8 = np.zeros(SLICE_WORDS, np.uint64)
+    c9 = np.zeros(SLICE_WORDS, np.uint64)
+    for g in range(0, rows.shape[0], 8):
+        d0 = dblk[rows[g]]
+        d1 = dblk[rows[g + 1]]
+        d2 = dblk[rows[g + 2]]
+        d3 = dblk[rows[g + 3]]
+        d4 = dblk[rows[g + 4]]
+        d5 = dblk[rows[g + 5]]
+        d6 = dblk[rows[g + 6]]
+        d7 = dblk[rows[g + 7]]
+        for w in range(nw):
+            # 8 rows into planes 0-2 (ones, twos, fours) and a carry of weight 8
+            ones = c0[w]
+            twos = c1[w]
+            fours = c2[w]
+            twos_a, ones = _csa(ones, d0[w], d1[w])
+            twos_b, ones = _csa(ones, d2[w], d3[w])
+            fours_a, twos = _csa(twos, twos_a, twos_b)
+            twos_a, ones = _csa(ones, d4[w], d5[w])
+            twos_b, ones = _csa(ones, d6[w], d7[w])
+            fours_b, twos = _csa(twos, twos_a, twos_b)
+            carry, fours = _csa(fours, fours_a, fours_b)
+            c0[w] = ones
+            c1[w] = twos
+            c2[w] = fours
+            c3[w], carry = _half_add(c3[w], carry)  # the carry ripples up the higher planes
+            c4[w], carry = _half_add(c4[w], carry)
+            c5[w], carry = _half_add(c5[w], carry)
+            c6[w], carry = _half_add(c6[w], carry)
+            c7[w], carry = _half_add(c7[w], carry)
+            c8[w], carry = _half_add(c8[w], carry)
+            c9[w] ^= carry
+    planes[0] = c0
+    planes[1] = c1
+    planes[2] = c2
+    planes[3] = c3
+    planes[4] = c4
+    planes[5] = c5
+    planes[6] = c6
+    planes[7] = c7
+    planes[8] = c8
+    planes[9] = c9
+
+
 @njit(cache=True)
 def top2_sliced(y, rows, sparse, dense, ptr, post, f_pool, f_next, f_head, f_tail, f_fill, pool, nxt, head,
                 tail, fill, u_ptr, u_cells, limit, hints, inq, partial, touched):  # pragma: no cover - compiled
@@ -407,76 +467,11 @@ def top2_sliced(y, rows, sparse, dense, ptr, post, f_pool, f_next, f_head, f_tai
         j = touched[t]
         if partial[j] > wmax[j >> 6]:
             wmax[j >> 6] = partial[j]
-    # the counter planes are allocated here, not passed in: the compiler then knows they alias no
-    # row, which is what lets it vectorise the adder loop
-    c0 = np.zeros(SLICE_WORDS, np.uint64)
-    c1 = np.zeros(SLICE_WORDS, np.uint64)
-    c2 = np.zeros(SLICE_WORDS, np.uint64)
-    c3 = np.zeros(SLICE_WORDS, np.uint64)
-    c4 = np.zeros(SLICE_WORDS, np.uint64)
-    c5 = np.zeros(SLICE_WORDS, np.uint64)
-    c6 = np.zeros(SLICE_WORDS, np.uint64)
-    c7 = np.zeros(SLICE_WORDS, np.uint64)
-    c8 = np.zeros(SLICE_WORDS, np.uint64)
-    c9 = np.zeros(SLICE_WORDS, np.uint64)
     planes = np.zeros((SLICES, SLICE_WORDS), np.uint64)
     looked = 0
-    n_rows = rows.shape[0]
     for blk in range((limit + SLICE_BLOCK - 1) // SLICE_BLOCK):
         nw = min(SLICE_WORDS, n_words - blk * SLICE_WORDS)  # words of this block below the limit
-        for w in range(nw):
-            c0[w] = 0
-            c1[w] = 0
-            c2[w] = 0
-            c3[w] = 0
-            c4[w] = 0
-            c5[w] = 0
-            c6[w] = 0
-            c7[w] = 0
-            c8[w] = 0
-            c9[w] = 0
-        dblk = dense[blk]
-        for g in range(0, n_rows, 8):
-            d0 = dblk[rows[g]]
-            d1 = dblk[rows[g + 1]]
-            d2 = dblk[rows[g + 2]]
-            d3 = dblk[rows[g + 3]]
-            d4 = dblk[rows[g + 4]]
-            d5 = dblk[rows[g + 5]]
-            d6 = dblk[rows[g + 6]]
-            d7 = dblk[rows[g + 7]]
-            for w in range(nw):
-                # 8 rows into planes 0-2 (ones, twos, fours) and a carry of weight 8
-                ones = c0[w]
-                twos = c1[w]
-                fours = c2[w]
-                twos_a, ones = _csa(ones, d0[w], d1[w])
-                twos_b, ones = _csa(ones, d2[w], d3[w])
-                fours_a, twos = _csa(twos, twos_a, twos_b)
-                twos_a, ones = _csa(ones, d4[w], d5[w])
-                twos_b, ones = _csa(ones, d6[w], d7[w])
-                fours_b, twos = _csa(twos, twos_a, twos_b)
-                carry, fours = _csa(fours, fours_a, fours_b)
-                c0[w] = ones
-                c1[w] = twos
-                c2[w] = fours
-                c3[w], carry = _half_add(c3[w], carry)  # the carry ripples up the higher planes
-                c4[w], carry = _half_add(c4[w], carry)
-                c5[w], carry = _half_add(c5[w], carry)
-                c6[w], carry = _half_add(c6[w], carry)
-                c7[w], carry = _half_add(c7[w], carry)
-                c8[w], carry = _half_add(c8[w], carry)
-                c9[w] ^= carry
-        planes[0] = c0
-        planes[1] = c1
-        planes[2] = c2
-        planes[3] = c3
-        planes[4] = c4
-        planes[5] = c5
-        planes[6] = c6
-        planes[7] = c7
-        planes[8] = c8
-        planes[9] = c9
+        _block_planes(dense[blk], rows, nw, planes)
         for w in range(nw):
             gw = blk * SLICE_WORDS + w
             thr = s2 - wmax[gw]
@@ -511,3 +506,24 @@ def top2_sliced(y, rows, sparse, dense, ptr, post, f_pool, f_next, f_head, f_tai
         partial[touched[t]] = 0
     return b1, s1, b2, s2, looked
 
+
+
+@njit(cache=True)
+def scores_sliced(rows, dense, limit, out):  # pragma: no cover - compiled
+    """out[k] += the number of ``rows`` (dense rows, padded to a multiple of 8 with the all-zero
+    row 0) that hold interval k, for every k < limit: :func:`top2_sliced`'s carry-save count,
+    every lane then read out of the SLICES bit planes (every score, for the calibrated decision)."""
+    n_words = (limit + 63) >> 6
+    planes = np.zeros((SLICES, SLICE_WORDS), np.uint64)
+    for blk in range((limit + SLICE_BLOCK - 1) // SLICE_BLOCK):
+        nw = min(SLICE_WORDS, n_words - blk * SLICE_WORDS)
+        _block_planes(dense[blk], rows, nw, planes)
+        for w in range(nw):
+            base = (blk * SLICE_WORDS + w) << 6
+            lanes = min(64, limit - base)
+            for s in range(SLICES):
+                v = planes[s, w]
+                if v == 0:
+                    continue
+                for lane in range(lanes):
+                    out[base + lane] += np.int32((v >> np.uint64(lane)) & _ONE) << s

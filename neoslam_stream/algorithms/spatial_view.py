@@ -83,8 +83,12 @@ class SpatialViewCells:
         self.interval_start: list[int] = []
         #: each interval's first stamp (seconds; the frame number when frames come without stamps)
         self.interval_stamp: list[float] = []
+        self._stamps = np.zeros(1024, dtype=np.float64)  # the same, as an array (no copy per frame)
         self.interval_end: list[int] = []
         self.interval_template: list[int] = []
+        #: the frame each template was made on (the place's first visit): the sequence evidence of
+        #: the calibrated decision is judged by it, not by the matched interval's own start
+        self.template_start: list[int] = []
         self.n_templates = 0
         self.current_template = -1
         self.t = 0
@@ -136,6 +140,7 @@ class SpatialViewCells:
             self.unions.append(y_bm)
             self.interval_start.append(self.t)
             self.interval_stamp.append(stamp)
+            self._keep_stamp(k, stamp)
             self.interval_end.append(self.t)
             self.interval_template.append(-1)
             self.index.post(y, k)
@@ -149,6 +154,7 @@ class SpatialViewCells:
         elif new_interval:
             template = self.n_templates
             self.n_templates += 1
+            self.template_start.append(self.t)
         else:
             template = self.current_template
         if new_interval:
@@ -194,14 +200,22 @@ class SpatialViewCells:
         if limit > 0:
             norm = self._normalised_scores(y, k_all)
             recent = float(norm[k_all - 2]) if k_all >= 2 else None  # the view a moment ago
-            a = cal.assess(norm[:limit], np.asarray(self.interval_stamp[:limit]), recent)
+            a = cal.assess(norm[:limit], self._stamps[:limit], recent)
             if a is not None:
                 best, best_score, second, second_score = a.best, a.score, a.second, a.second_score
-        loop = cal.accept(self.t, self.interval_start[best] if a is not None else -1,
-                          a.confidence if a is not None else -np.inf)
+        # the reference is the place, the first frame of the winner's template: a place visited
+        # twice before has near-identical intervals from both visits, and the winner may flip
+        # between them from frame to frame; their template is the same once the second closed
+        place = self.template_start[self.interval_template[best]] if a is not None else -1
+        loop = cal.accept(self.t, place, a.confidence if a is not None else -np.inf)
         cal.frame_done()
         self.runner_up = (second, second_score)
         return loop, best, best_score, second, second_score
+
+    def _keep_stamp(self, k: int, stamp: float) -> None:
+        if k >= self._stamps.shape[0]:
+            self._stamps = np.concatenate([self._stamps, np.zeros(max(k + 1, self._stamps.shape[0]))])
+        self._stamps[k] = stamp
 
     def _normalised_scores(self, y: np.ndarray, limit: int) -> np.ndarray:
         """s_k |y_t| / max(|Y_k|, |y_t|) of the intervals k < limit (a new array): a long interval's
@@ -261,9 +275,16 @@ class SpatialViewCells:
         self.index.compact()
         self.interval_start = [int(x) for x in state["start"]]
         self.interval_stamp = [float(x) for x in state.get("stamps", self.interval_start)]
+        self._stamps = np.zeros(max(1024, len(self.interval_stamp)), dtype=np.float64)
+        self._stamps[:len(self.interval_stamp)] = self.interval_stamp
         self.interval_end = [int(x) for x in state["end"]]
         self.interval_template = [int(x) for x in state["template"]]
         self.n_templates = int(state["n_templates"])
+        # a template is made when its first interval opens
+        self.template_start = [-1] * self.n_templates
+        for start, template in zip(self.interval_start, self.interval_template, strict=True):
+            if template >= 0 and self.template_start[template] < 0:
+                self.template_start[template] = start
         self.current_template = int(state["current_template"])
         self.t = int(state["t"])
         self.sequence.load_state_dict(state.get("sequence", {}))

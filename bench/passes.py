@@ -1,0 +1,110 @@
+"""The default's spatial-view cells on a route driven again and again -> bench/results/passes.json.
+
+A robot that patrols revisits each place many times: the map should stop growing once the route is
+known (loop closures, few new templates), and D's cost should stay bounded while its intervals
+keep growing. C's winner cells over three passes of the looped synthetic route are recorded once
+through the default's A, B and C (cached beside the generalisation cache: about 4 minutes); D is
+then replayed over ``--passes`` passes, the passes after the third repeating the third's SDRs (by
+then each place's SDR hardly changes: its best candidate scores 511-512 of 512). Per pass (frames
+800-2400 of each, the stretch every pass revisits, and the whole pass): loop closures, new
+templates, intervals, and D's time per frame with every score counted posting by posting and
+bit-sliced (the same decisions, checked). One core, one run: the ratio is the figure.
+
+Run: ``.venv/bin/python bench/passes.py [--passes 12] [--out bench/results/passes.json]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pickle
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from neoslam_stream.algorithms.frontend import FrontEnd  # noqa: E402
+from neoslam_stream.config import load_config  # noqa: E402
+
+CACHE = Path(os.environ.get("NEOSLAM_CACHE", "/tmp/neoslam_generalisation")) / "passes_cells.pkl"
+RECORDED = 3
+STRETCH = (800, 2400)
+
+
+def record(path: Path = CACHE) -> dict[str, Any]:
+    """C's cells and the stamps of RECORDED passes of the default's looped route."""
+    if path.is_file():
+        return pickle.loads(path.read_bytes())
+    from neoslam_stream.sources.synthetic import SyntheticWorldSource
+
+    cfg = load_config("default", {"source": {"params": {"loop": True}}})
+    src = SyntheticWorldSource(**cfg.source.params)
+    route = src.route_len
+    src = SyntheticWorldSource(**{**cfg.source.params, "frames": RECORDED * route})
+    fe = FrontEnd(cfg.front_end())
+    cells, stamps, t0 = [], [], time.time()
+    for f in src:  # the in-process API's front end, one frame at a time
+        res = fe.step(f.image, f.frame, f.stamp)
+        cells.append(res.cells)
+        stamps.append(f.stamp)
+        if f.frame % 1000 == 0:
+            print(f"recording C's cells: frame {f.frame} of {RECORDED * route} ({time.time() - t0:.0f} s)", flush=True)
+    rec = {"route": route, "cells": cells, "stamps": stamps}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(pickle.dumps(rec))
+    return rec
+
+
+def replay(rec: dict[str, Any], passes: int, rows: bool) -> list[dict[str, Any]]:
+    """D over ``passes`` passes; ``rows`` False: every score counted posting by posting."""
+    fe = FrontEnd(load_config("default").front_end())
+    sv = fe.spatial_view
+    sv.index.sliced = None if rows else False
+    route, cells = rec["route"], rec["cells"]
+    dt = rec["stamps"][1] - rec["stamps"][0]
+    out = []
+    for p in range(passes):
+        src = min(p, RECORDED - 1) * route
+        closures = stretch = 0
+        templates, t0 = sv.n_templates, time.perf_counter()
+        ids = []
+        for i in range(route):
+            r = fe.template(cells[src + i], (p * route + i) * dt)
+            closures += r["is_loop_closure"]
+            stretch += STRETCH[0] <= i < STRETCH[1] and r["is_loop_closure"]
+            ids.append(r["id"])
+        out.append({"pass": p + 1, "closures": int(closures), "closures_800_2400": int(stretch),
+                    "new_templates": sv.n_templates - templates, "intervals": sv.n_intervals,
+                    "d_ms_per_frame": 1e3 * (time.perf_counter() - t0) / route, "ids": ids})
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--passes", type=int, default=12)
+    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "passes.json"))
+    args = ap.parse_args()
+    rec = record()
+    sliced = replay(rec, args.passes, rows=True)
+    counted = replay(rec, args.passes, rows=False)
+    same = all(a["ids"] == b["ids"] for a, b in zip(sliced, counted, strict=True))
+    res = {"route_frames": rec["route"], "recorded_passes": RECORDED, "stretch": list(STRETCH),
+           "same_decisions": same, "passes": []}
+    for a, b in zip(sliced, counted, strict=True):
+        row = {k: v for k, v in a.items() if k not in ("ids", "d_ms_per_frame")}
+        row.update({"d_ms_per_frame_sliced": round(a["d_ms_per_frame"], 3),
+                    "d_ms_per_frame_postings": round(b["d_ms_per_frame"], 3)})
+        res["passes"].append(row)
+        print(json.dumps(row), flush=True)
+    print("same decisions with both counts:", same)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(res, indent=1))
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -213,6 +213,7 @@ class SpatialViewCells:
         return loop, best, best_score, second, second_score
 
     def _keep_stamp(self, k: int, stamp: float) -> None:
+        """Interval k's stamp into the array the calibrated decision slices (grown by doubling)."""
         if k >= self._stamps.shape[0]:
             self._stamps = np.concatenate([self._stamps, np.zeros(max(k + 1, self._stamps.shape[0]))])
         self._stamps[k] = stamp

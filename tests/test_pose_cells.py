@@ -310,3 +310,32 @@ def test_stage_refuses_negative_template_ids():
 
     with pytest.raises(StageInputError):
         PoseCellsNode().process("visual_template", _tmpl(0, -1))
+
+
+def test_template_decay_relaxes_on_every_step_as_its_definition_says():
+    """Every template step relaxes every template's decay by pc_vt_restore (floor vt_active_decay)
+    and a guarded template seen again while current gains vt_active_decay: checked against that
+    definition, run eagerly over every template, through a long sequence and a checkpoint."""
+    pc = PoseCellNetwork(pc_dim_xy=21, pc_vt_restore=0.04)
+    a, r = pc.config.vt_active_decay, pc.config.pc_vt_restore
+    seq = list(range(12)) + [0] * 6 + list(range(1, 12)) + [0, 0] + [5, 6] * 20 + [0, 3, 3, 3, 11]
+    expected: dict[int, list[float]] = {}
+    current = pc.current_vt
+    for i, vt in enumerate(seq):
+        if i == 40:  # resume from a checkpoint half way
+            state = pc.state_dict()
+            pc = PoseCellNetwork(pc_dim_xy=21, pc_vt_restore=0.04)
+            pc.load_state_dict(state)
+        size = len(expected)
+        if vt not in expected:
+            expected[vt] = [a, float(size)]
+        elif expected[vt][1] < size - 10 and vt == current:
+            expected[vt][0] += a
+        for e in expected.values():
+            e[0] = max(a, e[0] - r)
+        current = vt
+        pc.on_view_template(vt)
+        pc.on_odo(0.0, 0.0, 1.0)
+    got = {int(k): v[3] for k, v in pc.state_dict()["templates"].items()}
+    assert got == {k: v[0] for k, v in expected.items()}
+    assert max(got.values()) > a  # the sequence did raise a decay above the floor

@@ -92,6 +92,11 @@ class PoseCellNetwork:
         self.best = (float(N // 2), float(N // 2), float(T // 2))  # x, y, th
         self.P[T // 2, N // 2, N // 2] = 1.0
         self.templates: dict[int, list[float]] = {}  # id -> [x, y, th, decay, creation rank]
+        # the decay relaxes on every template step, for every template; it is applied lazily (on
+        # a template's next use, one step at a time: the same floats) so that a step costs O(1),
+        # not O(templates): the template steps done, and the last step each decay is up to date with
+        self._vt_steps = 0
+        self._decay_step: dict[int, int] = {}
         self.experiences: list[tuple[float, float, float, int]] = []  # x, y, th, vt
         self.template_exps: dict[int, list[int]] = {}
         self.links: set[tuple[int, int]] = set()
@@ -273,8 +278,9 @@ class PoseCellNetwork:
         if vt not in self.templates:
             self.templates[vt] = [self.best[0], self.best[1], self.best[2], c.vt_active_decay,
                                   float(len(self.templates))]
+            self._decay_step[vt] = self._vt_steps - 1
         else:
-            t = self.templates[vt]
+            t = self._decayed(vt)
             size = len(self.templates)
             if c.openratslam_compat:
                 guard = size < 10 or vt < size - 10  # size_t wrap-round: no guard below 10 templates
@@ -299,11 +305,28 @@ class PoseCellNetwork:
                     else:  # fix 3: rounded and wrapped (the C++ truncates and skips an index of N)
                         ix, iy, ik = round(t[0]) % N, round(t[1]) % N, round(th_c) % T
                         self.P[ik, iy, ix] += energy
-        for t in self.templates.values():
-            t[3] = max(c.vt_active_decay, t[3] - c.pc_vt_restore)
+        # this step's relaxation of every decay (the others' when they are next used)
+        t = self.templates[vt]
+        t[3] = max(c.vt_active_decay, t[3] - c.pc_vt_restore)
+        self._decay_step[vt] = self._vt_steps
+        self._vt_steps += 1
         self.prev_vt = self.current_vt
         self.current_vt = vt
         self.vt_update = True
+
+    def _decayed(self, vt: int) -> list[float]:
+        """Template vt with its decay relaxed by pc_vt_restore for every template step since it was
+        last up to date (floor vt_active_decay), one step at a time as the steps would have."""
+        t = self.templates[vt]
+        c = self.config
+        # a template set directly (not through this method) counts as up to date
+        for _ in range(self._vt_steps - 1 - self._decay_step.get(vt, self._vt_steps - 1)):
+            d = max(c.vt_active_decay, t[3] - c.pc_vt_restore)
+            if d == t[3]:  # at the floor (or a step too small to change it): no later step moves it
+                break
+            t[3] = d
+        self._decay_step[vt] = self._vt_steps - 1
+        return t
 
     # ---------------------------------------------------------------- actions
     def _delta_pc(self, e: int) -> float:
@@ -362,8 +385,10 @@ class PoseCellNetwork:
     # ---------------------------------------------------------------- state
     def state_dict(self) -> dict[str, Any]:
         """The network's state; the activity's shape records pc_dim_th and pc_dim_xy."""
+        for vt in self.templates:  # every decay up to date
+            self._decayed(vt)
         return {"P": self.P.copy(), "best": list(self.best),
-                "templates": {str(k): v for k, v in self.templates.items()},
+                "templates": {str(k): list(v) for k, v in self.templates.items()},
                 "experiences": [list(e) for e in self.experiences],
                 "template_exps": {str(k): v for k, v in self.template_exps.items()},
                 "links": [list(lk) for lk in sorted(self.links)],
@@ -383,6 +408,8 @@ class PoseCellNetwork:
         self.P = P
         self.best = tuple(float(v) for v in st["best"])
         self.templates = {int(k): [float(x) for x in v] for k, v in st["templates"].items()}
+        self._vt_steps = 0
+        self._decay_step = {vt: -1 for vt in self.templates}
         self.experiences = [(float(e[0]), float(e[1]), float(e[2]), int(e[3])) for e in st["experiences"]]
         self.template_exps = {int(k): [int(x) for x in v] for k, v in st["template_exps"].items()}
         self.links = {(int(a), int(b)) for a, b in st["links"]}

@@ -16,6 +16,7 @@ Run: ``.venv/bin/python bench/passes.py [--passes 12] [--out bench/results/passe
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import pickle
@@ -41,12 +42,11 @@ def record(path: Path = CACHE) -> dict[str, Any]:
     from neoslam_stream.sources.synthetic import SyntheticWorldSource
 
     cfg = load_config("default", {"source": {"params": {"loop": True}}})
-    src = SyntheticWorldSource(**cfg.source.params)
+    src = SyntheticWorldSource(**cfg.source.params)  # the route over and over
     route = src.route_len
-    src = SyntheticWorldSource(**{**cfg.source.params, "frames": RECORDED * route})
     fe = FrontEnd(cfg.front_end())
     cells, stamps, t0 = [], [], time.time()
-    for f in src:  # the in-process API's front end, one frame at a time
+    for f in itertools.islice(src, RECORDED * route):  # the in-process API's front end, frame by frame
         res = fe.step(f.image, f.frame, f.stamp)
         cells.append(res.cells)
         stamps.append(f.stamp)

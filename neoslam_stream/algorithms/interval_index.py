@@ -28,6 +28,12 @@ COMPACT_MIN = 262144
 DENSE_MIN = 1024
 
 
+def _row_words(n_dense: int, limit: int) -> int:
+    """Row-words a bit-sliced count reads: the query's dense rows, padded to 8, times the words
+    holding the intervals below ``limit``."""
+    return (n_dense + 7) // 8 * 8 * ((limit + 63) // 64)
+
+
 class IntervalIndex:
     """Posting lists, union store and dense rows of the intervals 0..K-1 over ``sdr_size`` cells.
 
@@ -234,13 +240,10 @@ class IntervalIndex:
         dense = row > 0
         n_dense = int(dense.sum())
         sliced = use is not False and 0 < n_dense <= (1 << SLICES) - 8 and k_all > 0
-        if sliced and use is None:
-            words = (n_dense + 7) // 8 * 8 * ((k_all + 63) // 64)
-            sliced = 3 * words < int(self._count[y[dense]].sum())
+        if sliced and use is None:  # the cost model of top2_bounded, the sparse cells counted either way
+            sliced = 3 * _row_words(n_dense, k_all) < int(self._count[y[dense]].sum())
         if sliced:
-            self._dense_capacity(k_all - 1, 0)
-            r = np.sort(row[dense]).astype(np.int64)
-            kern.scores_sliced(np.concatenate([r, np.zeros(-len(r) % 8, np.int64)]), self._dense, k_all, scores)
+            kern.scores_sliced(self._query_rows(row[dense]), self._dense, k_all, scores)
             y = y[~dense]
         kern.scores_csr(self._ptr, self._post, y, scores)
         if self._frozen is not None:
@@ -287,17 +290,13 @@ class IntervalIndex:
         elif sliced is None:
             # cost model: a row-word of the bit-sliced count, a sparse posting and a posting the
             # bounded search could read cost 3 : 10 : 1 (measured on one machine: docs/performance.md)
-            words = (n_dense + 7) // 8 * 8 * ((limit + 63) // 64)
-            sliced = n_dense > 0 and 3 * words + 10 * sparse_postings < int(lengths.sum())
+            sliced = n_dense > 0 and 3 * _row_words(n_dense, limit) + 10 * sparse_postings < int(lengths.sum())
         if sliced:
-            self._dense_capacity(self._u_n - 1, 0)  # blocks to read even without any dense row
-            r = np.sort(rows[dense]).astype(np.int64)
-            r = np.concatenate([r, np.zeros(-len(r) % 8, np.int64)])
             read = sparse_postings
             b1, s1, b2, s2, verified = kern.top2_sliced(
-                y, r, y[~dense], self._dense, self._ptr, self._post, *frozen, self._pool, self._next, self._head,
-                self._tail, self._fill, self._u_ptr, self._u_cells, limit, h, self._inq, self._partial,
-                self._touched)
+                y, self._query_rows(rows[dense]), y[~dense], self._dense, self._ptr, self._post, *frozen,
+                self._pool, self._next, self._head, self._tail, self._fill, self._u_ptr, self._u_cells, limit, h,
+                self._inq, self._partial, self._touched)
         else:
             b1, s1, b2, s2, read, verified = kern.top2(
                 y, lengths, self._ptr, self._post, *frozen, self._pool, self._next, self._head, self._tail,
@@ -307,6 +306,13 @@ class IntervalIndex:
         self.last_search = (int(read), int(verified))
         h[0], h[2] = b1, b2
         return int(b1), int(s1), int(b2), int(s2)
+
+    def _query_rows(self, rows: np.ndarray) -> np.ndarray:
+        """A query's dense rows as the bit-sliced kernels take them: sorted, padded to a multiple of
+        8 with the all-zero row 0; every interval's block allocated (even without any dense row)."""
+        self._dense_capacity(self._u_n - 1, 0)
+        r = np.sort(rows).astype(np.int64)
+        return np.concatenate([r, np.zeros(-len(r) % 8, np.int64)])
 
     def warm_up(self) -> None:
         """Compile (or load from numba's cache) every kernel now, on a throw-away index of the same

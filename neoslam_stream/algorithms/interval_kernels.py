@@ -507,7 +507,6 @@ def top2_sliced(y, rows, sparse, dense, ptr, post, f_pool, f_next, f_head, f_tai
     return b1, s1, b2, s2, looked
 
 
-
 @njit(cache=True)
 def scores_sliced(rows, dense, limit, out):  # pragma: no cover - compiled
     """out[k] += the number of ``rows`` (dense rows, padded to a multiple of 8 with the all-zero

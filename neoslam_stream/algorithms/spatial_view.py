@@ -81,9 +81,7 @@ class SpatialViewCells:
         self.index = IntervalIndex(self.config.sdr_size)
         self.unions: list[BitMap] = []
         self.interval_start: list[int] = []
-        #: each interval's first stamp (seconds; the frame number when frames come without stamps)
-        self.interval_stamp: list[float] = []
-        self._stamps = np.zeros(1024, dtype=np.float64)  # the same, as an array (no copy per frame)
+        self._stamps = np.zeros(1024, dtype=np.float64)  # interval_stamp's store, grown by doubling
         self.interval_end: list[int] = []
         self.interval_template: list[int] = []
         #: the frame each template was made on (the place's first visit): the sequence evidence of
@@ -101,6 +99,11 @@ class SpatialViewCells:
     @property
     def n_intervals(self) -> int:
         return len(self.unions)
+
+    @property
+    def interval_stamp(self) -> np.ndarray:
+        """Each interval's first stamp (seconds; the frame number when frames come without stamps)."""
+        return self._stamps[:self.n_intervals]
 
     def _validate(self, sdr: np.ndarray) -> np.ndarray:
         a = np.asarray(sdr)
@@ -139,7 +142,6 @@ class SpatialViewCells:
             k = self.n_intervals
             self.unions.append(y_bm)
             self.interval_start.append(self.t)
-            self.interval_stamp.append(stamp)
             self._keep_stamp(k, stamp)
             self.interval_end.append(self.t)
             self.interval_template.append(-1)
@@ -194,13 +196,13 @@ class SpatialViewCells:
         cal.on_stamp(stamp)
         k_all = self.n_intervals
         limit = min(k_all - self.config.exclude_recent_intervals,
-                    bisect_right(self.interval_stamp, stamp - cal.min_gap_s))
+                    int(np.searchsorted(self.interval_stamp, stamp - cal.min_gap_s, side="right")))
         best, best_score, second, second_score = -1, 0.0, -1, 0.0
         a = None
         if limit > 0:
             norm = self._normalised_scores(y, k_all)
             recent = float(norm[k_all - 2]) if k_all >= 2 else None  # the view a moment ago
-            a = cal.assess(norm[:limit], self._stamps[:limit], recent)
+            a = cal.assess(norm[:limit], self.interval_stamp[:limit], recent)
             if a is not None:
                 best, best_score, second, second_score = a.best, a.score, a.second, a.second_score
         # the reference is the place, the first frame of the winner's template: a place visited
@@ -213,7 +215,7 @@ class SpatialViewCells:
         return loop, best, best_score, second, second_score
 
     def _keep_stamp(self, k: int, stamp: float) -> None:
-        """Interval k's stamp into the array the calibrated decision slices (grown by doubling)."""
+        """Interval k's first stamp into ``interval_stamp``'s store (grown by doubling)."""
         if k >= self._stamps.shape[0]:
             self._stamps = np.concatenate([self._stamps, np.zeros(max(k + 1, self._stamps.shape[0]))])
         self._stamps[k] = stamp
@@ -250,7 +252,7 @@ class SpatialViewCells:
                 "start": np.asarray(self.interval_start, np.int64), "end": np.asarray(self.interval_end, np.int64),
                 "template": np.asarray(self.interval_template, np.int64), "n_templates": self.n_templates,
                 "current_template": self.current_template, "t": self.t,
-                "sequence": self.sequence.state_dict(), "stamps": np.asarray(self.interval_stamp, np.float64),
+                "sequence": self.sequence.state_dict(), "stamps": self.interval_stamp.copy(),
                 "calibration": self.calibration.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -275,9 +277,9 @@ class SpatialViewCells:
             self.index.store_union(k, np.sort(a))
         self.index.compact()
         self.interval_start = [int(x) for x in state["start"]]
-        self.interval_stamp = [float(x) for x in state.get("stamps", self.interval_start)]
-        self._stamps = np.zeros(max(1024, len(self.interval_stamp)), dtype=np.float64)
-        self._stamps[:len(self.interval_stamp)] = self.interval_stamp
+        stamps = np.asarray(state.get("stamps", self.interval_start), dtype=np.float64)
+        self._stamps = np.zeros(max(1024, len(stamps)), dtype=np.float64)
+        self._stamps[:len(stamps)] = stamps
         self.interval_end = [int(x) for x in state["end"]]
         self.interval_template = [int(x) for x in state["template"]]
         self.n_templates = int(state["n_templates"])

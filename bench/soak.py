@@ -58,7 +58,10 @@ def minutes(stats_path: Path, every_s: float) -> list[dict]:
 
 
 def passes(run_dir: Path) -> list[dict]:
-    """Frames, loop closures and new templates in each pass of the looped synthetic route."""
+    """Frames, loop closures (all, and in the stretch every pass revisits: bench/passes.py's
+    STRETCH) and new templates in each pass of the looped synthetic route."""
+    from passes import STRETCH
+
     cfg = yaml.safe_load((run_dir / "config.yaml").read_text())
     if cfg["source"]["kind"] != "synthetic" or not (run_dir / "templates.csv").exists():
         return []
@@ -71,9 +74,11 @@ def passes(run_dir: Path) -> list[dict]:
         next(f)
         for line in f:
             frame, _, template, closure = line.split(",")[:4]
-            r = rows.setdefault(int(frame) // route, {"frames": 0, "loop_closures": 0, "new_templates": 0})
+            r = rows.setdefault(int(frame) // route, {"frames": 0, "loop_closures": 0, "new_templates": 0,
+                                                      "loop_closures_800_2400": 0})
             r["frames"] += 1
             r["loop_closures"] += int(closure)
+            r["loop_closures_800_2400"] += int(closure) * (STRETCH[0] <= int(frame) % route < STRETCH[1])
             if int(template) not in seen:
                 seen.add(int(template))
                 r["new_templates"] += 1

@@ -2,15 +2,15 @@
 
 A robot that patrols revisits each place many times: the map should stop growing once the route is
 known (loop closures, few new templates), and D's cost should stay bounded while its intervals
-keep growing. C's winner cells over three passes of the looped synthetic route are recorded once
-through the default's A, B and C (cached beside the generalisation cache: about 4 minutes); D is
-then replayed over ``--passes`` passes, the passes after the third repeating the third's SDRs (by
-then each place's SDR hardly changes: its best candidate scores 511-512 of 512). Per pass (frames
-800-2400 of each, the stretch every pass revisits, and the whole pass): loop closures, new
-templates, intervals, and D's time per frame with every score counted posting by posting and
-bit-sliced (the same decisions, checked). One core, one run: the ratio is the figure.
+keep growing. C's winner cells over ten passes of the looped synthetic route are recorded once
+through the default's A, B and C (cached beside the generalisation cache: about 20 minutes; C keeps
+learning, so each pass's SDRs are its own); D is then replayed over ``--passes`` passes, any after
+the tenth repeating the tenth's SDRs. Per pass (frames 800-2400 of each, the stretch every pass
+revisits, and the whole pass): loop closures, new templates, intervals, and D's time per frame
+with every score counted posting by posting and bit-sliced (the same decisions, checked). One
+core, one run: the ratio is the figure.
 
-Run: ``.venv/bin/python bench/passes.py [--passes 12] [--out bench/results/passes.json]``.
+Run: ``.venv/bin/python bench/passes.py [--passes 10] [--out bench/results/passes.json]``.
 """
 
 from __future__ import annotations
@@ -30,8 +30,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from neoslam_stream.algorithms.frontend import FrontEnd  # noqa: E402
 from neoslam_stream.config import load_config  # noqa: E402
 
-CACHE = Path(os.environ.get("NEOSLAM_CACHE", "/tmp/neoslam_generalisation")) / "passes_cells.pkl"
-RECORDED = 3
+CACHE = Path(os.environ.get("NEOSLAM_CACHE", "/tmp/neoslam_generalisation")) / "passes_cells_10.pkl"
+RECORDED = 10
 STRETCH = (800, 2400)
 
 
@@ -84,7 +84,7 @@ def replay(rec: dict[str, Any], passes: int, rows: bool) -> list[dict[str, Any]]
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--passes", type=int, default=12)
+    ap.add_argument("--passes", type=int, default=RECORDED)
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "passes.json"))
     args = ap.parse_args()
     rec = record()

@@ -140,6 +140,39 @@ def test_a_place_visited_twice_before_closes_whichever_visit_wins():
     assert all(first_frame[third[i]["id"]] == i for i in closed)
 
 
+def test_templates_made_while_a_revisit_was_confirmed_become_that_place():
+    """At 0.2 m/s and one frame a second the evidence needs L = 3 frames (0.6 m), so the second
+    traversal's first frames of the revisit are refused and make new templates. Once the evidence
+    confirms the revisit, every template made in the L frames before the closure is the place its
+    frame matched: its interval takes the first traversal's template of that place. The state
+    carries the templates still on probation through a checkpoint."""
+    rng = np.random.default_rng(6)
+    places = _places(80, rng)
+    frames = [_noisy(p, rng, 0.9) for p in places] + [_noisy(p, rng, 0.6) for p in places]
+    d = _d(speed_mps=0.2)
+    out = [d.compute(f, stamp=float(i)) for i, f in enumerate(frames)]
+    L = d.calibration.sequence_frames
+    assert L == 3
+    made = [i for i in range(80, 160) if out[i]["id"] >= 80 and not out[i]["is_loop_closure"]]
+    closed = {i for i in range(80, 160) if out[i]["is_loop_closure"]}
+    confirmed = [i for i in made if any(i + j in closed for j in range(1, L + 1))]
+    assert 80 in confirmed  # the revisit's first frame, refused for want of evidence
+    for i in confirmed:  # each place's intervals: the first traversal's i - 80, the second's i
+        assert d.interval_template[i] == d.interval_template[i - 80], i
+    unconfirmed = [i for i in made if i not in confirmed]
+    assert all(d.interval_template[i] == out[i]["id"] for i in unconfirmed)
+    assert d.calibration.report()["templates_merged"] == len(confirmed)
+    # the probation list through a checkpoint: resumed on the frame after the first refusal
+    first = _d(speed_mps=0.2)
+    for i, f in enumerate(frames[:81]):
+        first.compute(f, stamp=float(i))
+    assert first.pending
+    resumed = _d(speed_mps=0.2)
+    resumed.load_state_dict(first.state_dict())
+    assert [resumed.compute(f, stamp=float(81 + i)) for i, f in enumerate(frames[81:])] == out[81:]
+    assert resumed.interval_template == d.interval_template
+
+
 def test_a_run_without_revisit_closes_nothing_and_says_so():
     rng = np.random.default_rng(2)
     d = _d()
@@ -197,6 +230,37 @@ def test_the_local_view_recognises_old_templates_only_when_they_stand_out():
     assert all(tid == ids[i] for i, tid in closures)
     rep = lv.calibration.report()
     assert rep["revisit_seen"] and math.isfinite(rep["unrelated_sd"])
+
+
+def test_the_local_view_keeps_one_template_per_place_over_repeated_drives():
+    """The corridor driven three times at 0.2 m/s (L = 3 frames of evidence): the second drive's
+    first frames of the revisit make templates before the evidence confirms it; they then become
+    the place their frames matched, a first-drive template (+-1 frame), and every closure of the
+    third drive reports a first-drive template, never one of those duplicates."""
+    rng = np.random.default_rng(7)
+    strip = rng.integers(0, 256, (24, 64 + 16 * 70), dtype=np.uint8)
+    lv = LocalViewFrontEnd({"template_x_size": 16, "template_y_size": 6, "vt_shift_match": 1,
+                            "calibration": {"enabled": True}},
+                           PlatformConfig(speed_mps=0.2, shortest_loop_m=20.0))
+
+    def frame(i: int, noise: float) -> np.ndarray:
+        view = strip[:, 16 * i:16 * i + 64].astype(float)
+        return np.clip(view + rng.normal(0, noise, view.shape), 0, 255).astype(np.uint8)
+
+    first = [lv.template(frame(i, 5), stamp=float(i))["id"] for i in range(70)]
+    n_first = len(lv.cells.templates)
+    second = [lv.template(frame(i, 25), stamp=70.0 + i) for i in range(70)]
+    L = lv.calibration.sequence_frames
+    assert L == 3
+    closed = {i for i, r in enumerate(second) if r["is_loop_closure"]}
+    dups = [(i, r["id"]) for i, r in enumerate(second)
+            if r["id"] >= n_first and any(i + j in closed for j in range(1, L + 1))]
+    assert dups  # the revisit's first frames, refused for want of evidence
+    for i, tid in dups:
+        assert lv.place[tid] in first[max(0, i - 1):i + 2], (i, tid)
+    third = [lv.template(frame(i, 25), stamp=140.0 + i) for i in range(70)]
+    closures = [r["id"] for r in third if r["is_loop_closure"]]
+    assert len(closures) >= 35 and all(tid < n_first for tid in closures)
 
 
 def test_the_run_summary_says_what_was_calibrated_and_whether_a_revisit_was_seen():

@@ -100,6 +100,8 @@ class RunCalibration:
         self.sum_mean = self.sum_sd = 0.0
         self.closures = 0
         self.first_closure_frame = -1
+        #: templates made while a revisit's evidence accumulated, then found to be that place
+        self.templates_merged = 0
 
     # ---------------------------------------------------------------- time
     def on_stamp(self, stamp: float) -> None:
@@ -188,7 +190,8 @@ class RunCalibration:
         out: dict[str, Any] = {"z_min": self.config.z_min, "rho": self.config.rho,
                                "min_revisit_s": round(self.min_gap_s, 3), "sequence_frames": self.sequence_frames,
                                "frame_s": round(self.frame_s, 4), "ready_from_frame": self.ready_frame,
-                               "closures": self.closures, "first_closure_frame": self.first_closure_frame}
+                               "closures": self.closures, "first_closure_frame": self.first_closure_frame,
+                               "templates_merged": self.templates_merged}
         if n > 0:
             mean, sd = self.sum_mean / n, self.sum_sd / n
             out.update({"unrelated_mean": round(mean, 3), "unrelated_sd": round(sd, 3),
@@ -200,7 +203,7 @@ class RunCalibration:
         return {"history": [[t, m, c] for t, m, c in self.history], "intervals": list(self.intervals),
                 "last_stamp": self.last_stamp,
                 "figures": [self.ready_frame, self.frames_assessed, self.sum_mean, self.sum_sd, self.closures,
-                            self.first_closure_frame]}
+                            self.first_closure_frame, self.templates_merged]}
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
         self.history = deque(((int(t), int(m), float(c)) for t, m, c in st.get("history", [])),
@@ -213,3 +216,4 @@ class RunCalibration:
             (self.ready_frame, self.frames_assessed, self.sum_mean, self.sum_sd, self.closures,
              self.first_closure_frame) = (int(fig[0]), int(fig[1]), float(fig[2]), float(fig[3]), int(fig[4]),
                                           int(fig[5]))
+            self.templates_merged = int(fig[6]) if len(fig) > 6 else 0

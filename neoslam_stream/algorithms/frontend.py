@@ -172,6 +172,11 @@ class LocalViewFrontEnd:
         self.frame = 0
         #: each template's creation stamp and frame
         self.created: list[tuple[float, int]] = []
+        #: each template's place: itself, or the older template that confirmed evidence showed it
+        #: to duplicate (as D's, SpatialViewCells._confirm_duplicates); and the templates on
+        #: probation, (frame, template, matched template)
+        self.place: list[int] = []
+        self.pending: list[tuple[int, int, int]] = []
         self.calibration = RunCalibration(self.config.calibration, platform or PlatformConfig())
 
     def template(self, pixels: np.ndarray, stamp: float | None = None) -> dict[str, Any]:
@@ -184,6 +189,7 @@ class LocalViewFrontEnd:
             vt, rad = self.cells.on_image(pixels)
         if len(self.cells.templates) > n_before:
             self.created.append((stamp, self.frame))
+            self.place.append(len(self.place))
         loop = len(self.cells.templates) == n_before and vt != self.prev
         self.prev = vt
         self.frame += 1
@@ -199,11 +205,17 @@ class LocalViewFrontEnd:
         old = np.flatnonzero(born <= stamp - cal.min_gap_s)
         recent = None if self.prev < 0 else -float(err[self.prev])
         a = cal.assess(-err[old], born[old], recent) if old.size else None
-        ref = self.created[old[a.best]][1] if a is not None else -1
+        matched = int(old[a.best]) if a is not None else -1
+        ref = self.created[self.place[matched]][1] if a is not None else -1  # the place's first frame
         closure = cal.accept(self.frame, ref, a.confidence if a is not None else -np.inf)
         cal.frame_done()
         if closure:
-            k = int(old[a.best])
+            k = matched
+            for frame, dup, m in self.pending:  # the revisit is confirmed: see SpatialViewCells
+                if frame >= self.frame - cal.sequence_frames:
+                    self.place[dup] = self.place[m]
+                    cal.templates_merged += 1
+            self.pending.clear()
         else:  # OpenRatSLAM's rule among the templates too young to be a loop closure
             young = np.setdiff1d(np.arange(err.shape[0]), old)
             k = int(young[np.argmin(err[young])]) if young.size else -1
@@ -212,9 +224,12 @@ class LocalViewFrontEnd:
         if k < 0:
             cells.last_error = float(err.min()) if err.size else float("inf")
             cells.current_id, cells.relative_rad = cells.add_template(t), 0.0
-        else:
-            cells.last_error = float(err[k])
-            cells.current_id, cells.relative_rad = k, float(rad[k])
+            if matched >= 0:
+                self.pending = [e for e in self.pending if e[0] >= self.frame - cal.sequence_frames]
+                self.pending.append((self.frame, cells.current_id, matched))
+            return cells.current_id, 0.0
+        cells.last_error = float(err[k])
+        cells.current_id, cells.relative_rad = self.place[k], float(rad[k])
         return cells.current_id, cells.relative_rad
 
     def warm_up(self) -> None:
@@ -222,11 +237,14 @@ class LocalViewFrontEnd:
 
     def state_dict(self) -> dict[str, Any]:
         return {"lv": self.cells.state_dict(), "prev": self.prev, "frame": self.frame,
-                "created": [[s, f] for s, f in self.created], "calibration": self.calibration.state_dict()}
+                "created": [[s, f] for s, f in self.created], "calibration": self.calibration.state_dict(),
+                "place": list(self.place), "pending": [list(e) for e in self.pending]}
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
         self.cells.load_state_dict(st["lv"])
         self.prev = int(st["prev"])
         self.frame = int(st.get("frame", 0))
         self.created = [(float(s), int(f)) for s, f in st.get("created", [])]
+        self.place = [int(x) for x in st.get("place", range(len(self.created)))]
+        self.pending = [(int(f), int(k), int(m)) for f, k, m in st.get("pending", [])]
         self.calibration.load_state_dict(st.get("calibration", {}))

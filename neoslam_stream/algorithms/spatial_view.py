@@ -8,7 +8,9 @@ s_k = |Y_k & y_t| > theta_sigma are candidates; the best k* (lowest index on tie
 closure onto k*'s template; otherwise a new interval gets a new template id (consecutive from 0)
 and an extended one keeps the current template. Optional acceptance rules, off in the paper's
 profile: ``sequence`` (algorithms/sequence.py), ``theta_margin`` over the runner-up and
-``union_normalised`` scores. Unlike the ROS 2 NeoSLAM, interval k's template is its own and the
+``union_normalised`` scores, or the calibrated decision (algorithms/calibration.py), under which the
+templates that a revisit's first, refused frames made become the place that the accepted closure
+confirms (``_confirm_duplicates``). Unlike the ROS 2 NeoSLAM, interval k's template is its own and the
 first frame opens interval 0 like any other. The scores come from
 :class:`~.interval_index.IntervalIndex`.
 """
@@ -95,6 +97,10 @@ class SpatialViewCells:
         self.sequence = SequenceFilter(self.config.sequence)
         seq = self.config.sequence
         self.calibration = RunCalibration(self.config.calibration, self.platform, seq.max_step, seq.slack)
+        #: the calibrated decision's templates on probation: (frame, interval, matched interval)
+        #: of each recent frame that made a new template while it matched an older place
+        #: (``_confirm_duplicates``)
+        self.pending: list[tuple[int, int, int]] = []
 
     @property
     def n_intervals(self) -> int:
@@ -161,6 +167,8 @@ class SpatialViewCells:
             template = self.current_template
         if new_interval:
             self.interval_template[-1] = template
+        if cfg.calibration.enabled:
+            self._confirm_duplicates(loop, new_interval and not loop, best)
         self.current_template = template
         self.t += 1
         return {"id": template, "is_loop_closure": bool(loop), "best_interval": best if loop else -1,
@@ -214,6 +222,24 @@ class SpatialViewCells:
         self.runner_up = (second, second_score)
         return loop, best, best_score, second, second_score
 
+    def _confirm_duplicates(self, loop: bool, made_template: bool, best: int) -> None:
+        """A closure is accepted only after evidence over ``sequence_m`` of travel, so the first
+        frames of a revisit are refused and make new templates of a place that already has one.
+        When the evidence then confirms the revisit, each such template made within that stretch
+        is the place its frame matched: its interval takes that place's template, so that later
+        visits find one template there, not two that compete (their references would disagree).
+        The ids already sent stay valid; they are just not matched again."""
+        if loop:
+            oldest = self.t - self.calibration.sequence_frames
+            for frame, k, matched in self.pending:
+                if frame >= oldest:
+                    self.interval_template[k] = self.interval_template[matched]
+                    self.calibration.templates_merged += 1
+            self.pending.clear()
+        elif made_template and best >= 0:
+            self.pending = [e for e in self.pending if e[0] >= self.t - self.calibration.sequence_frames]
+            self.pending.append((self.t, self.n_intervals - 1, best))
+
     def _keep_stamp(self, k: int, stamp: float) -> None:
         """Interval k's first stamp into ``interval_stamp``'s store (grown by doubling)."""
         if k >= self._stamps.shape[0]:
@@ -253,7 +279,7 @@ class SpatialViewCells:
                 "template": np.asarray(self.interval_template, np.int64), "n_templates": self.n_templates,
                 "current_template": self.current_template, "t": self.t,
                 "sequence": self.sequence.state_dict(), "stamps": self.interval_stamp.copy(),
-                "calibration": self.calibration.state_dict()}
+                "calibration": self.calibration.state_dict(), "pending": [list(e) for e in self.pending]}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore a :meth:`state_dict`; a state made with other parameters (``params``) is
@@ -292,3 +318,4 @@ class SpatialViewCells:
         self.t = int(state["t"])
         self.sequence.load_state_dict(state.get("sequence", {}))
         self.calibration.load_state_dict(state.get("calibration", {}))
+        self.pending = [(int(f), int(k), int(m)) for f, k, m in state.get("pending", [])]

@@ -59,7 +59,9 @@ def calibration_line(stage: str, cal: dict[str, Any]) -> str:
             f"(z >= {cal['z_min']}) over {cal['sequence_frames'] + 1} consistent frames; ")
     if not cal.get("revisit_seen"):
         return head + "no revisit seen in this run"
-    return head + f"{cal['closures']} loop closures from frame {cal['first_closure_frame']}"
+    merged = cal.get("templates_merged", 0)
+    return (head + f"{cal['closures']} loop closures from frame {cal['first_closure_frame']}"
+            + (f", {merged} templates found to be places already known" if merged else ""))
 
 
 def _hz(value: float | None) -> str:

@@ -207,20 +207,27 @@ def test_the_calibrated_state_survives_a_checkpoint():
     assert rest == ref[70:]
 
 
-def test_the_local_view_recognises_old_templates_only_when_they_stand_out():
-    """RatSLAM's local view with the same decision: a corridor of random texture driven twice at
-    one frame per second (each frame overlaps the previous one, as a camera's do); the second
-    drive, noisier, is recognised onto the first drive's templates, and the first closes nothing."""
-    rng = np.random.default_rng(5)
+def _corridor(seed: int, speed_mps: float):
+    """RatSLAM's calibrated local view and a corridor of random texture, 70 frames long:
+    frame(i, noise) is the i-th view (each overlaps the previous one, as a camera's do)."""
+    rng = np.random.default_rng(seed)
     strip = rng.integers(0, 256, (24, 64 + 16 * 70), dtype=np.uint8)
     lv = LocalViewFrontEnd({"template_x_size": 16, "template_y_size": 6, "vt_shift_match": 1,
                             "calibration": {"enabled": True}},
-                           PlatformConfig(speed_mps=1.0, shortest_loop_m=20.0))
+                           PlatformConfig(speed_mps=speed_mps, shortest_loop_m=20.0))
 
     def frame(i: int, noise: float) -> np.ndarray:
         view = strip[:, 16 * i:16 * i + 64].astype(float)
         return np.clip(view + rng.normal(0, noise, view.shape), 0, 255).astype(np.uint8)
 
+    return lv, frame
+
+
+def test_the_local_view_recognises_old_templates_only_when_they_stand_out():
+    """RatSLAM's local view with the same decision: a corridor of random texture driven twice at
+    one frame per second (each frame overlaps the previous one, as a camera's do); the second
+    drive, noisier, is recognised onto the first drive's templates, and the first closes nothing."""
+    lv, frame = _corridor(5, speed_mps=1.0)
     first = [lv.template(frame(i, 5), stamp=float(i)) for i in range(70)]
     ids = [r["id"] for r in first]
     assert not any(r["is_loop_closure"] for r in first)
@@ -237,16 +244,7 @@ def test_the_local_view_keeps_one_template_per_place_over_repeated_drives():
     first frames of the revisit make templates before the evidence confirms it; they then become
     the place their frames matched, a first-drive template (+-1 frame), and every closure of the
     third drive reports a first-drive template, never one of those duplicates."""
-    rng = np.random.default_rng(7)
-    strip = rng.integers(0, 256, (24, 64 + 16 * 70), dtype=np.uint8)
-    lv = LocalViewFrontEnd({"template_x_size": 16, "template_y_size": 6, "vt_shift_match": 1,
-                            "calibration": {"enabled": True}},
-                           PlatformConfig(speed_mps=0.2, shortest_loop_m=20.0))
-
-    def frame(i: int, noise: float) -> np.ndarray:
-        view = strip[:, 16 * i:16 * i + 64].astype(float)
-        return np.clip(view + rng.normal(0, noise, view.shape), 0, 255).astype(np.uint8)
-
+    lv, frame = _corridor(7, speed_mps=0.2)
     first = [lv.template(frame(i, 5), stamp=float(i))["id"] for i in range(70)]
     n_first = len(lv.cells.templates)
     second = [lv.template(frame(i, 25), stamp=70.0 + i) for i in range(70)]

@@ -166,7 +166,7 @@ def test_templates_made_while_a_revisit_was_confirmed_become_that_place():
     first = _d(speed_mps=0.2)
     for i, f in enumerate(frames[:81]):
         first.compute(f, stamp=float(i))
-    assert first.pending
+    assert first.calibration.pending
     resumed = _d(speed_mps=0.2)
     resumed.load_state_dict(first.state_dict())
     assert [resumed.compute(f, stamp=float(81 + i)) for i, f in enumerate(frames[81:])] == out[81:]

@@ -102,6 +102,9 @@ class RunCalibration:
         self.first_closure_frame = -1
         #: templates made while a revisit's evidence accumulated, then found to be that place
         self.templates_merged = 0
+        #: templates on probation: (frame, the caller's key for the template, the key of what its
+        #: frame matched), kept for one stretch of evidence (:meth:`on_new_template`)
+        self.pending: list[tuple[int, int, int]] = []
 
     # ---------------------------------------------------------------- time
     def on_stamp(self, stamp: float) -> None:
@@ -178,6 +181,20 @@ class RunCalibration:
                 self.first_closure_frame = t
         return ok
 
+    def on_new_template(self, t: int, key: int, matched: int) -> None:
+        """Frame t made a new template (``key``) while its best candidate was ``matched``: if a
+        closure within the next L frames confirms the revisit, that template is the place it matched."""
+        self.pending = [e for e in self.pending if e[0] >= t - self.sequence_frames]
+        self.pending.append((t, key, matched))
+
+    def confirmed(self, t: int) -> list[tuple[int, int]]:
+        """At a closure accepted on frame t: (key, matched) of each template made within its stretch
+        of evidence (the L frames before t), which the caller makes the place its frame matched."""
+        out = [(k, m) for f, k, m in self.pending if f >= t - self.sequence_frames]
+        self.pending = []
+        self.templates_merged += len(out)
+        return out
+
     def frame_done(self) -> None:
         self.frames_assessed += 1
 
@@ -201,7 +218,7 @@ class RunCalibration:
 
     def state_dict(self) -> dict[str, Any]:
         return {"history": [[t, m, c] for t, m, c in self.history], "intervals": list(self.intervals),
-                "last_stamp": self.last_stamp,
+                "last_stamp": self.last_stamp, "pending": [list(e) for e in self.pending],
                 "figures": [self.ready_frame, self.frames_assessed, self.sum_mean, self.sum_sd, self.closures,
                             self.first_closure_frame, self.templates_merged]}
 
@@ -209,6 +226,7 @@ class RunCalibration:
         self.history = deque(((int(t), int(m), float(c)) for t, m, c in st.get("history", [])),
                              maxlen=max(self.sequence_frames, 1))
         self.intervals = deque((float(v) for v in st.get("intervals", [])), maxlen=64)
+        self.pending = [(int(f), int(k), int(m)) for f, k, m in st.get("pending", [])]
         stamp = st.get("last_stamp")
         self.last_stamp = None if stamp is None else float(stamp)
         fig = st.get("figures")

@@ -173,10 +173,8 @@ class LocalViewFrontEnd:
         #: each template's creation stamp and frame
         self.created: list[tuple[float, int]] = []
         #: each template's place: itself, or the older template that confirmed evidence showed it
-        #: to duplicate (as D's, SpatialViewCells._confirm_duplicates); and the templates on
-        #: probation, (frame, template, matched template)
+        #: to duplicate (as D's, SpatialViewCells._confirm_duplicates)
         self.place: list[int] = []
-        self.pending: list[tuple[int, int, int]] = []
         self.calibration = RunCalibration(self.config.calibration, platform or PlatformConfig())
 
     def template(self, pixels: np.ndarray, stamp: float | None = None) -> dict[str, Any]:
@@ -211,11 +209,8 @@ class LocalViewFrontEnd:
         cal.frame_done()
         if closure:
             k = matched
-            for frame, dup, m in self.pending:  # the revisit is confirmed: see SpatialViewCells
-                if frame >= self.frame - cal.sequence_frames:
-                    self.place[dup] = self.place[m]
-                    cal.templates_merged += 1
-            self.pending.clear()
+            for dup, m in cal.confirmed(self.frame):  # the revisit is confirmed: see SpatialViewCells
+                self.place[dup] = self.place[m]
         else:  # OpenRatSLAM's rule among the templates too young to be a loop closure
             young = np.setdiff1d(np.arange(err.shape[0]), old)
             k = int(young[np.argmin(err[young])]) if young.size else -1
@@ -225,8 +220,7 @@ class LocalViewFrontEnd:
             cells.last_error = float(err.min()) if err.size else float("inf")
             cells.current_id, cells.relative_rad = cells.add_template(t), 0.0
             if matched >= 0:
-                self.pending = [e for e in self.pending if e[0] >= self.frame - cal.sequence_frames]
-                self.pending.append((self.frame, cells.current_id, matched))
+                cal.on_new_template(self.frame, cells.current_id, matched)
             return cells.current_id, 0.0
         cells.last_error = float(err[k])
         cells.current_id, cells.relative_rad = self.place[k], float(rad[k])
@@ -238,7 +232,7 @@ class LocalViewFrontEnd:
     def state_dict(self) -> dict[str, Any]:
         return {"lv": self.cells.state_dict(), "prev": self.prev, "frame": self.frame,
                 "created": [[s, f] for s, f in self.created], "calibration": self.calibration.state_dict(),
-                "place": list(self.place), "pending": [list(e) for e in self.pending]}
+                "place": list(self.place)}
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
         self.cells.load_state_dict(st["lv"])
@@ -246,5 +240,4 @@ class LocalViewFrontEnd:
         self.frame = int(st.get("frame", 0))
         self.created = [(float(s), int(f)) for s, f in st.get("created", [])]
         self.place = [int(x) for x in st.get("place", range(len(self.created)))]
-        self.pending = [(int(f), int(k), int(m)) for f, k, m in st.get("pending", [])]
         self.calibration.load_state_dict(st.get("calibration", {}))

@@ -97,10 +97,6 @@ class SpatialViewCells:
         self.sequence = SequenceFilter(self.config.sequence)
         seq = self.config.sequence
         self.calibration = RunCalibration(self.config.calibration, self.platform, seq.max_step, seq.slack)
-        #: the calibrated decision's templates on probation: (frame, interval, matched interval)
-        #: of each recent frame that made a new template while it matched an older place
-        #: (``_confirm_duplicates``)
-        self.pending: list[tuple[int, int, int]] = []
 
     @property
     def n_intervals(self) -> int:
@@ -230,15 +226,10 @@ class SpatialViewCells:
         visits find one template there, not two that compete (their references would disagree).
         The ids already sent stay valid; they are just not matched again."""
         if loop:
-            oldest = self.t - self.calibration.sequence_frames
-            for frame, k, matched in self.pending:
-                if frame >= oldest:
-                    self.interval_template[k] = self.interval_template[matched]
-                    self.calibration.templates_merged += 1
-            self.pending.clear()
+            for k, matched in self.calibration.confirmed(self.t):  # keys: the intervals
+                self.interval_template[k] = self.interval_template[matched]
         elif made_template and best >= 0:
-            self.pending = [e for e in self.pending if e[0] >= self.t - self.calibration.sequence_frames]
-            self.pending.append((self.t, self.n_intervals - 1, best))
+            self.calibration.on_new_template(self.t, self.n_intervals - 1, best)
 
     def _keep_stamp(self, k: int, stamp: float) -> None:
         """Interval k's first stamp into ``interval_stamp``'s store (grown by doubling)."""
@@ -279,7 +270,7 @@ class SpatialViewCells:
                 "template": np.asarray(self.interval_template, np.int64), "n_templates": self.n_templates,
                 "current_template": self.current_template, "t": self.t,
                 "sequence": self.sequence.state_dict(), "stamps": self.interval_stamp.copy(),
-                "calibration": self.calibration.state_dict(), "pending": [list(e) for e in self.pending]}
+                "calibration": self.calibration.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore a :meth:`state_dict`; a state made with other parameters (``params``) is
@@ -318,4 +309,3 @@ class SpatialViewCells:
         self.t = int(state["t"])
         self.sequence.load_state_dict(state.get("sequence", {}))
         self.calibration.load_state_dict(state.get("calibration", {}))
-        self.pending = [(int(f), int(k), int(m)) for f, k, m in state.get("pending", [])]

@@ -50,6 +50,8 @@ def minutes(stats_path: Path, every_s: float) -> list[dict]:
                      "tm_segments": (st.get("C", {}).get("info") or {}).get("segments"),
                      "tm_synapses": (st.get("C", {}).get("info") or {}).get("synapses"),
                      "svc_intervals": (st.get("D", {}).get("info") or {}).get("intervals"),
+                     # the intervals in D's index (revisits stay out of it in the default)
+                     "svc_indexed": (st.get("D", {}).get("info") or {}).get("indexed_intervals"),
                      # D's query over its recent frames: how the spatial-view search scales
                      "d_query_recent_p50_ms": st.get("D", {}).get("tau_recent_p50_ms"),
                      "d_query_recent_p95_ms": st.get("D", {}).get("tau_recent_p95_ms"),
@@ -59,7 +61,8 @@ def minutes(stats_path: Path, every_s: float) -> list[dict]:
 
 def passes(run_dir: Path) -> list[dict]:
     """Frames, loop closures (all, and in the stretch every pass revisits: bench/passes.py's
-    STRETCH) and new templates in each pass of the looped synthetic route."""
+    STRETCH), new templates and the frames lost (``lost_frames``: missing from templates.csv; what
+    ``bench/passes.py --lost-from`` replays) in each pass of the looped synthetic route."""
     from passes import STRETCH
 
     cfg = yaml.safe_load((run_dir / "config.yaml").read_text())
@@ -70,6 +73,7 @@ def passes(run_dir: Path) -> list[dict]:
     route = SyntheticWorldSource(**cfg["source"]["params"]).route_len
     rows: dict[int, dict] = {}
     seen: set[int] = set()
+    got: set[int] = set()
     with open(run_dir / "templates.csv") as f:
         next(f)
         for line in f:
@@ -77,12 +81,16 @@ def passes(run_dir: Path) -> list[dict]:
             r = rows.setdefault(int(frame) // route, {"frames": 0, "loop_closures": 0, "new_templates": 0,
                                                       "loop_closures_800_2400": 0})
             r["frames"] += 1
+            got.add(int(frame))
             r["loop_closures"] += int(closure)
             r["loop_closures_800_2400"] += int(closure) * (STRETCH[0] <= int(frame) % route < STRETCH[1])
             if int(template) not in seen:
                 seen.add(int(template))
                 r["new_templates"] += 1
-    return [{"pass": k + 1, **rows[k]} for k in sorted(rows)]
+    last = max(got, default=-1)
+    return [{"pass": k + 1, **rows[k],
+             "lost_frames": [f for f in range(k * route, min((k + 1) * route, last + 1)) if f not in got]}
+            for k in sorted(rows)]
 
 
 def growth_per_hour(rows: list[dict]) -> float | None:

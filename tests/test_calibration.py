@@ -207,6 +207,45 @@ def test_the_calibrated_state_survives_a_checkpoint():
     assert rest == ref[70:]
 
 
+def test_revisits_stay_out_of_the_index_and_later_drives_still_close():
+    """``index_revisits: false``: four drives of 80 places. An interval enters the index when it
+    closes, unless every frame of it closed onto an older place: after the drives the index holds
+    exactly the other intervals, so it grows with new places, not with frames. The third and fourth
+    drives, which can only match what the index kept, close as well as the second, each onto its
+    own place's template; a checkpoint taken mid-drive resumes with the same decisions."""
+    rng = np.random.default_rng(7)
+    places = _places(80, rng)
+    frames = [_noisy(p, rng, 0.9) for p in places] + [_noisy(p, rng, 0.6) for _ in range(3) for p in places]
+
+    def make() -> SpatialViewCells:
+        return SpatialViewCells(SpatialViewConfig(calibration={"enabled": True}, index_revisits=False),
+                                platform=PlatformConfig(speed_mps=1.0, shortest_loop_m=20.0))
+
+    d = make()
+    out = [d.compute(f, stamp=float(i)) for i, f in enumerate(frames)]
+    closed = [r["is_loop_closure"] for r in out]
+    complete = range(d.n_intervals - 1)  # the newest interval is still open
+    kept = [k for k in complete
+            if not all(closed[d.interval_start[k]:d.interval_end[k] + 1])]
+    assert d.indexed == kept and len(kept) < 0.5 * d.n_intervals
+    first_frame = {}
+    for k in range(d.n_intervals):
+        first_frame.setdefault(d.interval_template[k], d.interval_start[k])
+    drives = [[i for i in range(80) if closed[80 * n + i]] for n in range(4)]
+    assert not drives[0] and len(drives[1]) >= 60
+    for n in (2, 3):
+        assert len(drives[n]) >= len(drives[1]) - 5
+        assert all(first_frame[out[80 * n + i]["id"]] == i for i in drives[n])
+    half = make()
+    for i, f in enumerate(frames[:200]):
+        half.compute(f, stamp=float(i))
+    resumed = make()
+    resumed.load_state_dict(half.state_dict())
+    assert [resumed.compute(f, stamp=float(200 + i)) for i, f in enumerate(frames[200:])] == out[200:]
+    with pytest.raises(ValueError, match="index_revisits"):
+        SpatialViewConfig(index_revisits=False)
+
+
 def _corridor(seed: int, speed_mps: float):
     """RatSLAM's calibrated local view and a corridor of random texture, 70 frames long:
     frame(i, noise) is the i-th view (each overlaps the previous one, as a camera's do)."""

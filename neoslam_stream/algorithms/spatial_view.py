@@ -12,16 +12,18 @@ profile: ``sequence`` (algorithms/sequence.py), ``theta_margin`` over the runner
 templates that a revisit's first, refused frames made become the place that the accepted closure
 confirms (``_confirm_duplicates``). Unlike the ROS 2 NeoSLAM, interval k's template is its own and the
 first frame opens interval 0 like any other. The scores come from
-:class:`~.interval_index.IntervalIndex`.
+:class:`~.interval_index.IntervalIndex`, which receives an interval when it closes (no candidate is
+younger than omega intervals); ``index_revisits: false`` keeps out an interval whose every frame
+closed onto an older place, so a route driven again and again keeps a bounded index.
 """
 
 from __future__ import annotations
 
-from bisect import bisect_right
+from bisect import bisect_left, bisect_right
 from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 from pyroaring import BitMap
 
 from ._config import make_config
@@ -55,6 +57,19 @@ class SpatialViewConfig(BaseModel):
     #: (algorithms/calibration.py): ranked by the union-normalised score, candidates only from
     #: places seen a shortest loop ago, evidence over a stretch of travel. Off: the paper's rule
     calibration: CalibrationConfig = Field(default_factory=CalibrationConfig)
+    #: False: an interval whose every frame closed onto an older place does not enter the index.
+    #: That place is there already (with the one-template-per-place merge, under the same
+    #: template), so a patrol's index, D's time per frame and its memory grow with the new places
+    #: only, not with every frame. Needs ``calibration.enabled`` (whose statistics then leave the
+    #: revisits out too). True: every interval is a candidate (the paper's rule)
+    index_revisits: bool = True
+
+    @model_validator(mode="after")
+    def _pruning_needs_calibration(self) -> SpatialViewConfig:
+        if not self.index_revisits and not self.calibration.enabled:
+            raise ValueError("index_revisits: false needs calibration.enabled: true (the thresholded "
+                             "rules count every interval)")
+        return self
 
     @field_validator("exclude_recent_intervals")
     @classmethod
@@ -83,6 +98,10 @@ class SpatialViewCells:
         self.index = IntervalIndex(self.config.sdr_size)
         self.unions: list[BitMap] = []
         self.interval_start: list[int] = []
+        #: the intervals in the index, in order: the index numbers them 0, 1, ... (its slots)
+        self.indexed: list[int] = []
+        #: whether every frame of the newest interval closed onto an older place
+        self._all_closed = False
         self._stamps = np.zeros(1024, dtype=np.float64)  # interval_stamp's store, grown by doubling
         self.interval_end: list[int] = []
         self.interval_template: list[int] = []
@@ -132,23 +151,19 @@ class SpatialViewCells:
             alpha = self.unions[cur].intersection_cardinality(y_bm)
             duration = self.interval_end[cur] - self.interval_start[cur]
             if alpha >= cfg.theta_alpha and duration < cfg.theta_rho:
-                added = y_bm - self.unions[cur]
                 self.unions[cur] |= y_bm
                 self.interval_end[cur] = self.t
-                if len(added):
-                    self.index.post(np.fromiter(added, dtype=np.int32, count=len(added)), cur)
-                    self.index.store_union(cur, np.asarray(self.unions[cur].to_array(), dtype=np.int64))
             else:
                 new_interval = True
         if new_interval:
             k = self.n_intervals
+            if k:
+                self._close_interval(k - 1)
             self.unions.append(y_bm)
             self.interval_start.append(self.t)
             self._keep_stamp(k, stamp)
             self.interval_end.append(self.t)
             self.interval_template.append(-1)
-            self.index.post(y, k)
-            self.index.store_union(k, y)
         if cfg.calibration.enabled:
             loop, best, best_score, second, second_score = self._calibrated(y, stamp)
         else:
@@ -163,6 +178,7 @@ class SpatialViewCells:
             template = self.current_template
         if new_interval:
             self.interval_template[-1] = template
+        self._all_closed = bool(loop) and (new_interval or self._all_closed)
         if cfg.calibration.enabled:
             self._confirm_duplicates(loop, new_interval and not loop, best)
         self.current_template = template
@@ -170,6 +186,20 @@ class SpatialViewCells:
         return {"id": template, "is_loop_closure": bool(loop), "best_interval": best if loop else -1,
                 "best_score": best_score, "relative_rad": 0.0, "interval": self.n_intervals - 1,
                 "second_interval": second, "second_score": second_score}
+
+    def _close_interval(self, k: int) -> None:
+        """Interval k is complete (k + 1 opens): into the index as its next slot, unless revisits
+        stay out and every frame of k closed onto an older place. Such an interval's union is then
+        needed only as the view a moment ago for k + 1's frames, and is freed when k + 1 closes."""
+        if k and not self.config.index_revisits and (not self.indexed or self.indexed[-1] != k - 1):
+            self.unions[k - 1] = BitMap()  # interval k - 1 stayed out: nothing reads it any more
+        if not self.config.index_revisits and self._all_closed:
+            return
+        slot = len(self.indexed)
+        cells = np.asarray(self.unions[k].to_array(), dtype=np.int32)
+        self.index.post(cells, slot)
+        self.index.store_union(slot, cells.astype(np.int64))
+        self.indexed.append(k)
 
     def _thresholded(self, y: np.ndarray) -> tuple[bool, int, Any, int, Any]:
         """The paper's rule (s > theta_sigma) and the optional margin and sequence rules."""
@@ -204,11 +234,13 @@ class SpatialViewCells:
         best, best_score, second, second_score = -1, 0.0, -1, 0.0
         a = None
         if limit > 0:
-            norm = self._normalised_scores(y, k_all)
-            recent = float(norm[k_all - 2]) if k_all >= 2 else None  # the view a moment ago
-            a = cal.assess(norm[:limit], self.interval_stamp[:limit], recent)
+            slots = bisect_left(self.indexed, limit)  # the indexed intervals k < limit
+            which = np.asarray(self.indexed[:slots], dtype=np.int64)
+            a = cal.assess(self._normalised_scores(y, slots), self.interval_stamp[which],
+                           self._recent_score(y) if k_all >= 2 else None)
             if a is not None:
-                best, best_score, second, second_score = a.best, a.score, a.second, a.second_score
+                best, best_score = int(which[a.best]), a.score
+                second, second_score = int(which[a.second]), a.second_score
         # the reference is the place, the first frame of the winner's template: a place visited
         # twice before has near-identical intervals from both visits, and the winner may flip
         # between them from frame to frame; their template is the same once the second closed
@@ -238,10 +270,18 @@ class SpatialViewCells:
         self._stamps[k] = stamp
 
     def _normalised_scores(self, y: np.ndarray, limit: int) -> np.ndarray:
-        """s_k |y_t| / max(|Y_k|, |y_t|) of the intervals k < limit (a new array): a long interval's
-        union, which overlaps everything a little, is no hub."""
+        """s_k |y_t| / max(|Y_k|, |y_t|) of the index's slots < limit (a new array; the intervals
+        ``indexed[:limit]``): a long interval's union, which overlaps everything a little, is no hub."""
         n = len(y)
         return self.index.all_scores(y)[:limit] * (n / np.maximum(self.index.union_sizes(limit), n))
+
+    def _recent_score(self, y: np.ndarray) -> float:
+        """The normalised score of the interval before the newest: the view a moment ago."""
+        n = len(y)
+        union = self.unions[self.n_intervals - 2]
+        size = np.array([len(union)], dtype=np.int64)
+        s = np.array([union.intersection_cardinality(BitMap(y))], dtype=np.int32)
+        return float((s * (n / np.maximum(size, n)))[0])
 
     def _top2_normalised(self, y: np.ndarray, limit: int) -> tuple[int, float, int, float]:
         """The top two candidates k < limit by s_k |y_t| / max(|Y_k|, |y_t|) (``union_normalised``;
@@ -270,7 +310,8 @@ class SpatialViewCells:
                 "template": np.asarray(self.interval_template, np.int64), "n_templates": self.n_templates,
                 "current_template": self.current_template, "t": self.t,
                 "sequence": self.sequence.state_dict(), "stamps": self.interval_stamp.copy(),
-                "calibration": self.calibration.state_dict()}
+                "calibration": self.calibration.state_dict(), "indexed": np.asarray(self.indexed, np.int64),
+                "all_closed": self._all_closed}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore a :meth:`state_dict`; a state made with other parameters (``params``) is
@@ -286,13 +327,17 @@ class SpatialViewCells:
                     raise ValueError(f"spatial_view.{name}: the state was made with {value}, the config has "
                                      f"{ours}; resume with the checkpoint's value or start afresh")
         self.index.clear()
-        self.unions = []
-        for k, arr in enumerate(state["unions"]):
-            a = np.asarray(arr, dtype=np.int32)
-            self.unions.append(BitMap(a))
-            self.index.post(a, k)
-            self.index.store_union(k, np.sort(a))
+        self.unions = [BitMap(np.asarray(arr, dtype=np.int32)) for arr in state["unions"]]
+        # a state from before the index took intervals as they close had every one in it
+        indexed = state.get("indexed", range(len(self.unions) - 1))
+        self.indexed = []
+        for k in (int(v) for v in indexed):
+            cells = np.asarray(self.unions[k].to_array(), dtype=np.int32)
+            self.index.post(cells, len(self.indexed))
+            self.index.store_union(len(self.indexed), cells.astype(np.int64))
+            self.indexed.append(k)
         self.index.compact()
+        self._all_closed = bool(state.get("all_closed", False))
         self.interval_start = [int(x) for x in state["start"]]
         stamps = np.asarray(state.get("stamps", self.interval_start), dtype=np.float64)
         self._stamps = np.zeros(max(1024, len(stamps)), dtype=np.float64)

@@ -11,7 +11,7 @@ from typing import Any
 
 from ..runtime.node import NodeSpec
 from ..runtime.topology import PipelinePlan
-from .topics import ALGORITHM_TOPICS, EXPERIENCE_POSE, POSE_CELL_ACTION
+from .topics import ALGORITHM_TOPICS, EXPERIENCE_POSE, POSE_CELL_ACTION, VISUAL_TEMPLATE
 
 RECORDER = "neoslam_stream.nodes.recorder:make_node"
 RATSLAM_NODES = "neoslam_stream.nodes.ratslam"
@@ -19,8 +19,11 @@ ROS2_OUT = "neoslam_stream.nodes.ros2_out:make_node"
 #: the recorder reads these; it must not lose a row when the experience map's worker is busy
 RECORDER_CAPACITY = {"visual_template": 4096, "experience_map/pose": 4096, "experience_map/map": 4}
 #: the back end's input queues unless bus.capacity names them: actions are tiny, and path
-#: integration must not lose one
-BACKEND_CAPACITY = {str(POSE_CELL_ACTION): 256}
+#: integration must not lose one. Templates are tiny too and cost the pose cells about a millisecond:
+#: a ring as deep as the templates that may wait for their odometry (PoseCellsNode.max_odom_lag)
+#: rides out a stall of the cores that the stages share instead of losing the frame, and costs no
+#: latency when nothing stalls
+BACKEND_CAPACITY = {str(POSE_CELL_ACTION): 256, str(VISUAL_TEMPLATE): 64}
 
 
 def build_emulated(cfg: Any) -> PipelinePlan:

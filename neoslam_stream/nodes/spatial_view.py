@@ -39,8 +39,8 @@ class SpatialViewNode(Node):
         return [(VISUAL_TEMPLATE, msg.derive(VISUAL_TEMPLATE, {k: res[k] for k in TEMPLATE_KEYS}))]
 
     def info(self) -> dict[str, Any]:
-        out = {"intervals": self.cells.n_intervals, "templates": self.cells.n_templates,
-               "loop_closures": self.loops}
+        out = {"intervals": self.cells.n_intervals, "indexed_intervals": len(self.cells.indexed),
+               "templates": self.cells.n_templates, "loop_closures": self.loops}
         if self.cells.config.calibration.enabled:  # what the run settled on (report.json)
             out["calibration"] = self.cells.calibration.report()
         return out

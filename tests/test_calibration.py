@@ -227,7 +227,7 @@ def test_revisits_stay_out_of_the_index_and_later_drives_still_close():
     complete = range(d.n_intervals - 1)  # the newest interval is still open
     kept = [k for k in complete
             if not all(closed[d.interval_start[k]:d.interval_end[k] + 1])]
-    assert d.indexed == kept and len(kept) < 0.5 * d.n_intervals
+    assert d.indexed.tolist() == kept and len(kept) < 0.5 * d.n_intervals
     first_frame = {}
     for k in range(d.n_intervals):
         first_frame.setdefault(d.interval_template[k], d.interval_start[k])

@@ -19,7 +19,7 @@ closed onto an older place, so a route driven again and again keeps a bounded in
 
 from __future__ import annotations
 
-from bisect import bisect_left, bisect_right
+from bisect import bisect_right
 from typing import Any
 
 import numpy as np
@@ -98,8 +98,10 @@ class SpatialViewCells:
         self.index = IntervalIndex(self.config.sdr_size)
         self.unions: list[BitMap] = []
         self.interval_start: list[int] = []
-        #: the intervals in the index, in order: the index numbers them 0, 1, ... (its slots)
-        self.indexed: list[int] = []
+        # the intervals in the index, in order (``indexed``; the index numbers them 0, 1, ...: its
+        # slots), in a store grown by doubling so that a frame reads them as a view
+        self._indexed = np.zeros(1024, dtype=np.int64)
+        self._n_indexed = 0
         #: whether every frame of the newest interval closed onto an older place
         self._all_closed = False
         self._stamps = np.zeros(1024, dtype=np.float64)  # interval_stamp's store, grown by doubling
@@ -120,6 +122,11 @@ class SpatialViewCells:
     @property
     def n_intervals(self) -> int:
         return len(self.unions)
+
+    @property
+    def indexed(self) -> np.ndarray:
+        """The intervals in the index, in order: slot i of the index is interval ``indexed[i]``."""
+        return self._indexed[:self._n_indexed]
 
     @property
     def interval_stamp(self) -> np.ndarray:
@@ -161,11 +168,11 @@ class SpatialViewCells:
                 self._close_interval(k - 1)
             self.unions.append(y_bm)
             self.interval_start.append(self.t)
-            self._keep_stamp(k, stamp)
+            self._stamps = _put(self._stamps, k, stamp)
             self.interval_end.append(self.t)
             self.interval_template.append(-1)
         if cfg.calibration.enabled:
-            loop, best, best_score, second, second_score = self._calibrated(y, stamp)
+            loop, best, best_score, second, second_score = self._calibrated(y, y_bm, stamp)
         else:
             loop, best, best_score, second, second_score = self._thresholded(y)
         if loop:
@@ -191,15 +198,20 @@ class SpatialViewCells:
         """Interval k is complete (k + 1 opens): into the index as its next slot, unless revisits
         stay out and every frame of k closed onto an older place. Such an interval's union is then
         needed only as the view a moment ago for k + 1's frames, and is freed when k + 1 closes."""
-        if k and not self.config.index_revisits and (not self.indexed or self.indexed[-1] != k - 1):
+        if k and not self.config.index_revisits and (not self._n_indexed or self.indexed[-1] != k - 1):
             self.unions[k - 1] = BitMap()  # interval k - 1 stayed out: nothing reads it any more
         if not self.config.index_revisits and self._all_closed:
             return
-        slot = len(self.indexed)
+        self._index_interval(k)
+
+    def _index_interval(self, k: int) -> None:
+        """Interval k's union into the index as its next slot."""
+        slot = self._n_indexed
         cells = np.asarray(self.unions[k].to_array(), dtype=np.int32)
         self.index.post(cells, slot)
         self.index.store_union(slot, cells.astype(np.int64))
-        self.indexed.append(k)
+        self._indexed = _put(self._indexed, slot, k)
+        self._n_indexed += 1
 
     def _thresholded(self, y: np.ndarray) -> tuple[bool, int, Any, int, Any]:
         """The paper's rule (s > theta_sigma) and the optional margin and sequence rules."""
@@ -223,7 +235,7 @@ class SpatialViewCells:
             loop = self.sequence.check(self.t, self.interval_start[best] if loop else -1)
         return loop, best, best_score, second, second_score
 
-    def _calibrated(self, y: np.ndarray, stamp: float) -> tuple[bool, int, float, int, float]:
+    def _calibrated(self, y: np.ndarray, y_bm: BitMap, stamp: float) -> tuple[bool, int, float, int, float]:
         """The calibrated decision (algorithms/calibration.py) on the union-normalised scores of
         the intervals opened at least a shortest loop ago (and outside the omega newest)."""
         cal = self.calibration
@@ -234,10 +246,10 @@ class SpatialViewCells:
         best, best_score, second, second_score = -1, 0.0, -1, 0.0
         a = None
         if limit > 0:
-            slots = bisect_left(self.indexed, limit)  # the indexed intervals k < limit
-            which = np.asarray(self.indexed[:slots], dtype=np.int64)
+            slots = int(np.searchsorted(self.indexed, limit))  # the indexed intervals k < limit
+            which = self.indexed[:slots]
             a = cal.assess(self._normalised_scores(y, slots), self.interval_stamp[which],
-                           self._recent_score(y) if k_all >= 2 else None)
+                           self._recent_score(y_bm) if k_all >= 2 else None)
             if a is not None:
                 best, best_score = int(which[a.best]), a.score
                 second, second_score = int(which[a.second]), a.second_score
@@ -263,25 +275,17 @@ class SpatialViewCells:
         elif made_template and best >= 0:
             self.calibration.on_new_template(self.t, self.n_intervals - 1, best)
 
-    def _keep_stamp(self, k: int, stamp: float) -> None:
-        """Interval k's first stamp into ``interval_stamp``'s store (grown by doubling)."""
-        if k >= self._stamps.shape[0]:
-            self._stamps = np.concatenate([self._stamps, np.zeros(max(k + 1, self._stamps.shape[0]))])
-        self._stamps[k] = stamp
-
     def _normalised_scores(self, y: np.ndarray, limit: int) -> np.ndarray:
         """s_k |y_t| / max(|Y_k|, |y_t|) of the index's slots < limit (a new array; the intervals
         ``indexed[:limit]``): a long interval's union, which overlaps everything a little, is no hub."""
         n = len(y)
         return self.index.all_scores(y)[:limit] * (n / np.maximum(self.index.union_sizes(limit), n))
 
-    def _recent_score(self, y: np.ndarray) -> float:
+    def _recent_score(self, y_bm: BitMap) -> float:
         """The normalised score of the interval before the newest: the view a moment ago."""
-        n = len(y)
+        n = len(y_bm)
         union = self.unions[self.n_intervals - 2]
-        size = np.array([len(union)], dtype=np.int64)
-        s = np.array([union.intersection_cardinality(BitMap(y))], dtype=np.int32)
-        return float((s * (n / np.maximum(size, n)))[0])
+        return union.intersection_cardinality(y_bm) * (n / max(len(union), n))
 
     def _top2_normalised(self, y: np.ndarray, limit: int) -> tuple[int, float, int, float]:
         """The top two candidates k < limit by s_k |y_t| / max(|Y_k|, |y_t|) (``union_normalised``;
@@ -310,7 +314,7 @@ class SpatialViewCells:
                 "template": np.asarray(self.interval_template, np.int64), "n_templates": self.n_templates,
                 "current_template": self.current_template, "t": self.t,
                 "sequence": self.sequence.state_dict(), "stamps": self.interval_stamp.copy(),
-                "calibration": self.calibration.state_dict(), "indexed": np.asarray(self.indexed, np.int64),
+                "calibration": self.calibration.state_dict(), "indexed": self.indexed.copy(),
                 "all_closed": self._all_closed}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -330,12 +334,10 @@ class SpatialViewCells:
         self.unions = [BitMap(np.asarray(arr, dtype=np.int32)) for arr in state["unions"]]
         # a state from before the index took intervals as they close had every one in it
         indexed = state.get("indexed", range(len(self.unions) - 1))
-        self.indexed = []
-        for k in (int(v) for v in indexed):
-            cells = np.asarray(self.unions[k].to_array(), dtype=np.int32)
-            self.index.post(cells, len(self.indexed))
-            self.index.store_union(len(self.indexed), cells.astype(np.int64))
-            self.indexed.append(k)
+        self._indexed = np.zeros(max(1024, len(indexed)), dtype=np.int64)
+        self._n_indexed = 0
+        for k in indexed:
+            self._index_interval(int(k))
         self.index.compact()
         self._all_closed = bool(state.get("all_closed", False))
         self.interval_start = [int(x) for x in state["start"]]
@@ -354,3 +356,12 @@ class SpatialViewCells:
         self.t = int(state["t"])
         self.sequence.load_state_dict(state.get("sequence", {}))
         self.calibration.load_state_dict(state.get("calibration", {}))
+
+
+def _put(store: np.ndarray, k: int, value: Any) -> np.ndarray:
+    """``store`` with ``store[k] = value``, grown by doubling when k lies beyond it (the per-interval
+    stores that a frame reads as views)."""
+    if k >= store.shape[0]:
+        store = np.concatenate([store, np.zeros(max(k + 1, store.shape[0]), dtype=store.dtype)])
+    store[k] = value
+    return store

@@ -81,7 +81,7 @@ class SourceRunSpec:
     #: first frame; ``odom`` is published only when listed (a pipeline that measures visual
     #: odometry publishes its own, and a second odometry of the same frame would be refused)
     wait_topics: list[str] = field(default_factory=lambda: ["image"])
-    #: pause between "everyone is linked" and the first frame
+    #: pause between "everyone is linked" and the first frame of a live run
     settle_s: float = 1.0
     #: the run's control secret (bus.ControlGate): control messages without it are refused
     control_token: str = ""
@@ -206,8 +206,10 @@ def run_source(spec: SourceRunSpec) -> None:
     if not wait_for_subscribers([bus.publisher(t) for t in spec.wait_topics], timeout=20.0):
         log.warning("no subscriber matched %s after 20 s; starting anyway", spec.wait_topics)
     # workers announce readiness, then finish starting (first stats, garbage collection of their
-    # set-up): give them a moment so that the first frames do not meet a busy machine
-    time.sleep(spec.settle_s)
+    # set-up): a live run gives them a moment, so that its first frames do not meet a busy machine
+    # and drop; a lossless run loses nothing to a busy machine and starts at once
+    if not spec.lossless:
+        time.sleep(spec.settle_s)
     token = session.liveliness().declare_token(key_for(spec.run, "alive/source"))
 
     counts = {"image": 0, "odom": 0, "groundtruth": 0}

@@ -227,11 +227,14 @@ class Supervisor(ChildProcesses):
         self.failure: str | None = None
         try:
             self._select_hosted()
+            # the monitor and the workers start together: the monitor, far lighter, is ready long
+            # before any worker publishes a stage's stats
             if self.is_primary:
                 self._start("monitor", monitor_entry, self.monitor_spec())
-                self._wait_ready(["monitor"], 60.0)
             for w in self.hosted:
                 self._start(w, worker_entry, self.worker_spec(w))
+            if self.is_primary:
+                self._wait_ready(["monitor"], 60.0)
             # every worker of the run, those of other hosts included (their tokens come through the router)
             self._wait_ready(list(self.groups), self.cfg.run.startup_timeout)
             if self.runs_source:

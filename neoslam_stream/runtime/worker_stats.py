@@ -22,43 +22,73 @@ log = logging.getLogger("neoslam.worker")
 
 
 class ServiceStats:
-    """Per-stage service and queueing times (seconds) with bounded memory."""
+    """Per-stage service and queueing times (seconds) with bounded memory and bounded cost.
+
+    Samples live in two preallocated arrays; when they are full the older half is dropped, so
+    the percentiles cover the newest ``MAX_SAMPLES // 2`` to ``MAX_SAMPLES`` frames. Stats go out
+    twice a second from the worker's own thread, between two frames: the percentiles over that
+    many samples cost ~25 ms at 100 000, so the whole-run ones are recomputed only when the
+    samples have grown by ``REFRESH_GROWTH`` since the last time (their cost, amortised, stays a
+    few operations per frame), the recent ones every time, and all of them exactly in the final
+    stats (``summary(exact=True)``)."""
 
     MAX_SAMPLES = 200_000
     #: the recent percentiles cover the newest this many frames (the scaling curve's step)
     RECENT = 1000
+    #: between two recomputations the live whole-run percentiles leave out at most this share
+    #: of the samples (the newest)
+    REFRESH_GROWTH = 0.125
 
     def __init__(self) -> None:
-        self.tau: list[float] = []
-        self.wait: list[float] = []
+        self._tau = np.empty(self.MAX_SAMPLES)
+        self._wait = np.empty(self.MAX_SAMPLES)
+        self._k = 0  # samples held
         self.tau_sum = 0.0
         self.n = 0
         self.tau_max = 0.0
+        #: the whole-run percentiles (tau p50, p95, queue p50, p95, in s) and the count they were taken at
+        self._whole: tuple[float, ...] = ()
+        self._whole_n = 0
+
+    @property
+    def tau(self) -> np.ndarray:
+        """The service times held (s), oldest first."""
+        return self._tau[: self._k]
+
+    @property
+    def wait(self) -> np.ndarray:
+        """The queueing times held (s), oldest first."""
+        return self._wait[: self._k]
 
     def add(self, tau: float, wait: float) -> None:
         self.n += 1
         self.tau_sum += tau
         self.tau_max = max(self.tau_max, tau)
-        if len(self.tau) >= self.MAX_SAMPLES:  # keep the newest half: memory stays bounded
-            del self.tau[: self.MAX_SAMPLES // 2]
-            del self.wait[: self.MAX_SAMPLES // 2]
-        self.tau.append(tau)
-        self.wait.append(wait)
+        if self._k >= self.MAX_SAMPLES:  # keep the newest half: memory stays bounded
+            drop = self.MAX_SAMPLES // 2
+            keep = self._k - drop
+            self._tau[:keep] = self._tau[drop: self._k]
+            self._wait[:keep] = self._wait[drop: self._k]
+            self._k = keep
+        self._tau[self._k] = tau
+        self._wait[self._k] = wait
+        self._k += 1
 
-    def summary(self) -> dict[str, float]:
-        if not self.tau:
+    def summary(self, exact: bool = False) -> dict[str, float]:
+        if self._k == 0:
             return {"tau_mean_ms": 0.0, "tau_p50_ms": 0.0, "tau_p95_ms": 0.0, "tau_max_ms": 0.0,
                     "tau_recent_p50_ms": 0.0, "tau_recent_p95_ms": 0.0,
                     "queue_p50_ms": 0.0, "queue_p95_ms": 0.0}
-        t = np.asarray(self.tau) * 1e3
-        w = np.asarray(self.wait) * 1e3
-        recent = t[-self.RECENT:]
+        if exact or not self._whole or self.n > self._whole_n * (1 + self.REFRESH_GROWTH):
+            self._whole = (*np.percentile(self.tau, [50, 95]), *np.percentile(self.wait, [50, 95]))
+            self._whole_n = self.n
+        t50, t95, w50, w95 = self._whole
+        r50, r95 = np.percentile(self._tau[max(0, self._k - self.RECENT): self._k], [50, 95])
         return {"tau_mean_ms": self.tau_sum / self.n * 1e3,
-                "tau_p50_ms": float(np.percentile(t, 50)), "tau_p95_ms": float(np.percentile(t, 95)),
-                "tau_recent_p50_ms": float(np.percentile(recent, 50)),
-                "tau_recent_p95_ms": float(np.percentile(recent, 95)),
+                "tau_p50_ms": float(t50) * 1e3, "tau_p95_ms": float(t95) * 1e3,
+                "tau_recent_p50_ms": float(r50) * 1e3, "tau_recent_p95_ms": float(r95) * 1e3,
                 "tau_max_ms": self.tau_max * 1e3,
-                "queue_p50_ms": float(np.percentile(w, 50)), "queue_p95_ms": float(np.percentile(w, 95))}
+                "queue_p50_ms": float(w50) * 1e3, "queue_p95_ms": float(w95) * 1e3}
 
 
 class StageRuntime:
@@ -169,7 +199,7 @@ class WorkerStats:
                     "holes": dict(self.queue.holes) if self.queue and i == 0 else {},
                     "stale_refused": self.queue.refused_stale if self.queue and i == 0 else 0,
                     "epoch": self.spec.epoch,
-                    "n_stages_in_worker": len(self.stages), **st.times.summary()}
+                    "n_stages_in_worker": len(self.stages), **st.times.summary(exact=final)}
             out.append(Message("stats", 0, now, data))
         return out
 

@@ -2,7 +2,9 @@
 
 One real-time (drop-oldest) pipeline run at ``--rate`` FPS for ``--duration`` seconds (default one
 hour), then the monitor's stats.jsonl sampled every ``--every`` seconds: frames in, frames done,
-loss in that interval and since the start, RSS of every worker and in total. Memory is bounded
+the frames lost in that interval, RSS of every worker and in total, and the CPU time the
+hypervisor took from this machine in it (``steal_s``, from /proc/stat beside the run: a minute in
+which the host took the cores loses frames that are not the pipeline's doing). Memory is bounded
 when the RSS curve flattens: the report gives the growth rate over the second half of the run
 (MB per hour) next to the state the stages keep (TM segments/synapses, spatial-view intervals,
 experiences), which must grow with new places only.
@@ -15,8 +17,12 @@ Also writes soak.png next to the JSON.
 from __future__ import annotations
 
 import argparse
+import bisect
 import json
+import os
 import sys
+import threading
+import time
 from pathlib import Path
 
 import yaml
@@ -57,6 +63,66 @@ def minutes(stats_path: Path, every_s: float) -> list[dict]:
                      "d_query_recent_p95_ms": st.get("D", {}).get("tau_recent_p95_ms"),
                      "experiences": (st.get("experience_map", {}).get("info") or {}).get("experiences")})
     return rows
+
+
+class StealLog(threading.Thread):
+    """Appends ``<epoch s> <the cpu line of /proc/stat>`` to ``path`` every ``every_s`` seconds
+    while the run goes on (no /proc/stat: nothing)."""
+
+    def __init__(self, path: Path, every_s: float) -> None:
+        super().__init__(daemon=True)
+        self.path, self.every_s, self.stop = path, every_s, threading.Event()
+
+    def run(self) -> None:
+        try:
+            with open(self.path, "w") as out:
+                while True:
+                    out.write(f"{time.time():.0f} {Path('/proc/stat').read_text().splitlines()[0]}\n")
+                    out.flush()
+                    if self.stop.wait(self.every_s):
+                        return
+        except OSError:
+            return
+
+
+def steal_by_row(log: Path, rows: list[dict]) -> None:
+    """Each row's ``steal_s``: the steal (8th value of the cpu line) since the previous row, the
+    counter read linearly between the log's samples; the log's first sample is the run's start, to
+    within a second (the run folder is made then)."""
+    if not log.exists():
+        return
+    tick = os.sysconf("SC_CLK_TCK")
+    samples = []
+    for line in log.read_text().splitlines():
+        parts = line.split()
+        if len(parts) > 9 and parts[1] == "cpu":
+            samples.append((float(parts[0]), int(parts[9]) / tick))
+    if len(samples) < 2:
+        return
+    t0 = samples[0][0]
+    ts = [t - t0 for t, _ in samples]
+
+    def at(t: float) -> float:  # the steal counter at run time t, linear between two samples
+        k = max(1, min(len(samples) - 1, bisect.bisect_right(ts, t)))
+        (ta, a), (tb, b) = (ts[k - 1], samples[k - 1][1]), (ts[k], samples[k][1])
+        return a + (b - a) * min(1.0, max(0.0, (t - ta) / (tb - ta))) if tb > ta else b
+
+    prev = 0.0
+    for r in rows:
+        r["steal_s"] = round(at(r["t_s"]) - at(prev), 2)
+        prev = r["t_s"]
+
+
+def lost_by_row(lost: list[int], rows: list[dict]) -> None:
+    """Each row's ``lost``: the lost frames published since the previous row (frame f was published
+    when ``frames_in`` passed f)."""
+    ins = [r["frames_in"] for r in rows]
+    for r in rows:
+        r["lost"] = 0
+    for f in lost:
+        k = bisect.bisect_right(ins, f)
+        if k < len(rows):
+            rows[k]["lost"] += 1
 
 
 def passes(run_dir: Path) -> list[dict]:
@@ -117,10 +183,13 @@ def plot(res: dict, path: Path) -> None:
         ax[0].plot(t, [r["rss_mb"].get(name) for r in rows], lw=0.8, label=name)
     ax[0].set(xlabel="minutes", ylabel="RSS (MB)", title="Memory")
     ax[0].legend(fontsize=7)
-    ax[1].plot(t, [r["in_flight"] for r in rows], "o-", ms=3)
-    ax[1].set(xlabel="minutes", ylabel="frames in flight at the sample",
+    ax[1].bar(t, [r.get("lost", 0) for r in rows], width=0.8, color="tab:red", label="frames lost in the minute")
+    ax[1].plot(t, [r.get("steal_s", float("nan")) for r in rows], "k.-", ms=3,
+               label="CPU seconds the hypervisor took (steal)")
+    ax[1].set(xlabel="minutes", ylabel="per sample interval",
               title=f"{res['frames_out']} of {res['frames_in']} frames at {res['rate']:g} FPS "
                     f"(loss {100 * res['loss']:.3f} %)")
+    ax[1].legend(fontsize=7)
     if res.get("passes"):
         ps = res["passes"]
         k = [r["pass"] for r in ps]
@@ -150,12 +219,16 @@ def main() -> None:
                     help="with int8 storage: 16- or 7-bit features (projector.feature_bits; default: the config's)")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "soak.json"))
     ap.add_argument("--from-run", help="analyse this finished soak run folder instead of running one")
+    ap.add_argument("--steal-log", help="with --from-run: the /proc/stat log taken beside it "
+                                        "(default: steal.log two folders above the run folder)")
     args = ap.parse_args()
     out = Path(args.out)
     work = out.parent / "soak_runs"
     run_dir = work / "runs" / f"pipeline-{args.rate:g}"
+    steal_log = work / "steal.log"
     if args.from_run:  # analyse a finished soak again (e.g. after changing this script)
         run_dir = Path(args.from_run)
+        steal_log = Path(args.steal_log) if args.steal_log else run_dir.parents[1] / "steal.log"
         report = json.loads((run_dir / "report.json").read_text())
         row = summarise(report, "pipeline", args.rate, args.duration)
         cfg = yaml.safe_load((run_dir / "config.yaml").read_text())
@@ -164,8 +237,18 @@ def main() -> None:
     else:
         chosen = {"matrix_dtype": args.matrix_dtype, "feature_bits": args.feature_bits}
         overrides = {"projector": {k: v for k, v in chosen.items() if v}} if any(chosen.values()) else None
-        (row,) = rate_sweep(args.config, [args.rate], args.duration, ["pipeline"], work, args.backbone, overrides)
+        work.mkdir(parents=True, exist_ok=True)
+        sampler = StealLog(steal_log, args.every)
+        sampler.start()
+        try:
+            (row,) = rate_sweep(args.config, [args.rate], args.duration, ["pipeline"], work, args.backbone, overrides)
+        finally:
+            sampler.stop.set()
     rows = minutes(run_dir / "stats.jsonl", args.every)
+    by_pass = passes(run_dir)
+    if by_pass:  # which frames were lost is known on the synthetic world's route
+        lost_by_row([f for p in by_pass for f in p["lost_frames"]], rows)
+    steal_by_row(steal_log, rows)
     res = {"rate": args.rate, "duration_s": args.duration, "frames_in": row["frames_in"],
            "frames_out": row["frames_processed"], "loss": row["loss"], "errors": row["errors"],
            "restarts": row["restarts"], "backbone": row["backbone"],
@@ -173,7 +256,7 @@ def main() -> None:
            "rss_total_mb_first": rows[0]["rss_total_mb"] if rows else None,
            "rss_total_mb_last": rows[-1]["rss_total_mb"] if rows else None,
            "rss_growth_mb_per_hour_second_half": growth_per_hour(rows),
-           "stages": row["stages"], "passes": passes(run_dir), "minutes": rows}
+           "stages": row["stages"], "passes": by_pass, "minutes": rows}
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(res, indent=2))
     if rows:

@@ -83,6 +83,15 @@ def test_the_plan_gives_every_process_its_topics_capacities_and_source(tmp_path)
     # the back end's actions queue deep unless bus.capacity names them; the image ring stays small
     assert sup.worker_spec("experience_map").capacities["pose_cells/action"] == 256
     assert sup.worker_spec("A").capacities["image"] == 2
+    # after a batching stage (A, B) a ring holds a whole batch of run.max_batch frames; after C,
+    # which takes one frame at a time, the default ring
+    assert sup.worker_spec("B").capacities["visual_features"] == cfg.run.max_batch
+    assert sup.worker_spec("C").capacities["bin_features"] == cfg.run.max_batch
+    assert sup.worker_spec("D").capacities.get("sdr", cfg.bus.default_capacity) == cfg.bus.default_capacity
+    one = load_config("default", {"run": {"live": False, "max_batch": 1}, "bus": {"capacity": {"bin_features": 3}}})
+    sup1 = Supervisor(one, build_plan(one), tmp_path / "one")
+    assert sup1.worker_spec("B").capacities["visual_features"] == one.bus.default_capacity  # no batch: 2
+    assert sup1.worker_spec("C").capacities["bin_features"] == 3  # bus.capacity names it: it wins
     cfg = load_config("default", {"run": {"live": False}, "bus": {"capacity": {"pose_cells/action": 7}}})
     sup = Supervisor(cfg, build_plan(cfg), tmp_path / "b")
     assert sup.worker_spec("experience_map").capacities["pose_cells/action"] == 7

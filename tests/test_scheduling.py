@@ -73,11 +73,14 @@ def test_bus_tx_queue_reaches_every_process_config(tmp_path, monkeypatch):
 
     monkeypatch.delenv(ZENOH_TX_QUEUE_ENV, raising=False)
     assert json.loads(make_config().get_json("transport/link/tx/queue/size"))["data"] == 2  # zenoh's own
-    cfg = load_config("default", {"bus": {"tx_queue": 16}})
+    cfg = load_config("default", {"bus": {"tx_queue": 5}})
     Supervisor(cfg, build_plan(cfg), tmp_path / "a").export_bus_settings()
-    assert json.loads(make_config().get_json("transport/link/tx/queue/size"))["data"] == 16
-    cfg = load_config("default")  # a later run in the same process without it: zenoh's default again
+    assert json.loads(make_config().get_json("transport/link/tx/queue/size"))["data"] == 5
+    cfg = load_config("default")  # the shipped default: 16 batches
     Supervisor(cfg, build_plan(cfg), tmp_path / "b").export_bus_settings()
+    assert json.loads(make_config().get_json("transport/link/tx/queue/size"))["data"] == 16
+    cfg = load_config("default", {"bus": {"tx_queue": None}})  # a later run without it: zenoh's own again
+    Supervisor(cfg, build_plan(cfg), tmp_path / "c").export_bus_settings()
     assert json.loads(make_config().get_json("transport/link/tx/queue/size"))["data"] == 2
     for bad in (0, 65):
         with pytest.raises(ConfigError, match="tx_queue"):

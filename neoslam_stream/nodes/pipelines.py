@@ -11,7 +11,14 @@ from typing import Any
 
 from ..runtime.node import NodeSpec
 from ..runtime.topology import PipelinePlan
-from .topics import ALGORITHM_TOPICS, EXPERIENCE_POSE, POSE_CELL_ACTION, VISUAL_TEMPLATE
+from .topics import (
+    ALGORITHM_TOPICS,
+    BIN_FEATURES,
+    EXPERIENCE_POSE,
+    POSE_CELL_ACTION,
+    VISUAL_FEATURES,
+    VISUAL_TEMPLATE,
+)
 
 RECORDER = "neoslam_stream.nodes.recorder:make_node"
 RATSLAM_NODES = "neoslam_stream.nodes.ratslam"
@@ -34,11 +41,22 @@ def build_emulated(cfg: Any) -> PipelinePlan:
                         topics=[EMULATED])
 
 
-def _backend_plan(specs: list[NodeSpec], entry_stages: list[str], source_topics: list[str]) -> PipelinePlan:
+def _backend_plan(specs: list[NodeSpec], entry_stages: list[str], source_topics: list[str],
+                  capacity: dict[str, int] | None = None) -> PipelinePlan:
     """A plan that ends in the back end: a frame is done when its experience-map pose arrives."""
     return PipelinePlan(specs, final_topic=str(EXPERIENCE_POSE), entry_stages=entry_stages,
                         consumed_source_topics=source_topics, topics=list(ALGORITHM_TOPICS),
-                        capacity=dict(BACKEND_CAPACITY))
+                        capacity={**BACKEND_CAPACITY, **(capacity or {})})
+
+
+def batch_capacity(cfg: Any) -> dict[str, int]:
+    """The rings after the batching stages (A, B) hold a whole batch unless ``bus.capacity`` names
+    them: a stage that fell behind takes up to ``run.max_batch`` frames at once and publishes them
+    together, and a ring of two behind it would evict one of the burst whenever the next stage is
+    busy with a frame, losing a frame that the stages before had already paid for. A ring this deep
+    adds no latency when nothing fell behind."""
+    depth = max(cfg.bus.default_capacity, cfg.run.max_batch)
+    return {str(VISUAL_FEATURES): depth, str(BIN_FEATURES): depth}
 
 
 def recorder_params(cfg: Any) -> dict[str, Any]:
@@ -90,7 +108,7 @@ def build_neoslam(cfg: Any) -> PipelinePlan:
         NodeSpec("D", "neoslam_stream.nodes.spatial_view:make_node",
                  {**cfg.spatial_view.model_dump(), "platform": cfg.platform.model_dump()})]
     _backend_specs(cfg, specs)
-    return _backend_plan(specs, ["A"], _source_topics(cfg))
+    return _backend_plan(specs, ["A"], _source_topics(cfg), batch_capacity(cfg))
 
 
 def build_ratslam(cfg: Any) -> PipelinePlan:
@@ -194,6 +212,7 @@ def build_compare(cfg: Any) -> PipelinePlan:
     rs = build_ratslam(cfg)
     paper = paper_branch(cfg, plan)
     plan.stages += paper
+    plan.capacity.update({f"{PAPER_DIR}/{t}": c for t, c in batch_capacity(cfg).items()})
     plan.stages += _branch(rs.stages, "rs_", {t: f"ratslam/{t}" for t in RATSLAM_BRANCH_TOPICS}, "ratslam")
     return plan
 

@@ -46,8 +46,10 @@ class BusConfig(Strict):
     #: access control; see docs/reliability.md); neoslam's endpoints, mode and scouting-off apply on top
     zenoh_config: str | None = None
     #: zenoh's transmit queue per link for data messages, in batches of 64 kB (None: zenoh's
-    #: default); deeper for large messages at high rates (docs/performance.md)
-    tx_queue: int | None = Field(None, ge=1, le=64)
+    #: default, 2). With two, a real-time publisher drops a message whose batches a busy core does
+    #: not send within zenoh's 1 ms (an image is 300 kB for the synthetic world's 416x240 frames);
+    #: 16 (1 MB) holds three such frames or one 640x480 RGB frame (docs/runtime.md)
+    tx_queue: int | None = Field(16, ge=1, le=64)
     #: input queue capacity per topic (real-time: ring, drop-oldest; lossless: FIFO, blocks).
     #: image: the newest frame plus one, so a stage stalled for two frame periods loses nothing;
     #: odom and groundtruth: tiny, and path integration needs every one (docs/runtime.md)

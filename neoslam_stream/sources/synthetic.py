@@ -10,7 +10,7 @@ The robot drives the ring: ``laps_cw`` laps one way, then ``laps_ccw`` the other
 directions), turning on the spot where the direction changes; the route is closed, so ``loop:
 true`` or ``frames`` beyond one route repeat it seamlessly. Wheel odometry = true motion with a
 speed scale bias, a yaw-rate bias, a yaw-rate random walk and white noise; ground truth is exact.
-Everything is vectorised numpy and seeded (docs/sources.md, "synthetic").
+Everything is vectorised numpy and seeded, the frame's composition a compiled loop (docs/sources.md, "synthetic").
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
+from numba import njit
 from pydantic import BaseModel, ConfigDict, Field
 
 from .base import Source, SourceFrame
@@ -145,22 +146,22 @@ class SyntheticWorld:
         self.background = (bg[..., None] * np.array([0.9, 0.85, 0.8]) * 255).astype(np.float32)  # (H, 1, 3)
 
     def render(self, x: float, y: float, th: float) -> np.ndarray:
+        """The (height, width, 3) uint8 RGB frame seen from (x, y) facing th: per column the wall
+        it hits spans rows top..bottom, textured from the atlas and shaded by its distance; the
+        other rows are floor and ceiling (:func:`_compose`, a compiled loop: the source's cost per
+        frame, which a camera does not have, is not taken from the stages' cores)."""
         if not hasattr(self, "atlas"):
             self._build_atlas()
         dist, _tid, along = self.cast_walls(x, y, th)
-        seg = self._hit_wall
         dist = np.maximum(dist, 0.05)
         h2 = self.height / 2
         top = h2 - self.focal * (WALL_HEIGHT - CAMERA_HEIGHT) / dist
         bottom = h2 + self.focal * CAMERA_HEIGHT / dist
-        v = (self.rows - top[None]) / (bottom - top)[None]  # 0 at the top of the wall, 1 at the floor
-        inside = (v >= 0) & (v < 1)
-        vi = np.clip((v * TEX_ROWS).astype(np.int32), 0, TEX_ROWS - 1)
         ui = np.minimum((along * TEX_PX_PER_M).astype(np.int32), self.atlas.shape[2] - 1)
-        cols = self.atlas[seg[None, :], vi, ui[None, :]]  # (H, W, 3)
-        shade = (1.0 / (1.0 + 0.15 * dist)).astype(np.float32)[None, :, None]
-        img = np.where(inside[..., None], cols * shade, self.background)
-        return img.astype(np.uint8)
+        shade = (1.0 / (1.0 + 0.15 * dist)).astype(np.float32)
+        img = np.empty((self.height, self.width, 3), np.uint8)
+        _compose(self.atlas, self._hit_wall, top, bottom, ui, shade, self.background[:, 0, :], img)
+        return img
 
     def cast_walls(self, x: float, y: float, th: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """:meth:`cast`, remembering which wall segment each column hit (for the texture atlas)."""
@@ -180,6 +181,28 @@ class SyntheticWorld:
         dist = t[cols, k] * np.cos(self.col_angles)
         seglen = np.hypot(ex, ey)[0, k]
         return dist, self.walls[k, 4].astype(int), u[cols, k] * seglen
+
+
+@njit(cache=True)
+def _compose(atlas: np.ndarray, seg: np.ndarray, top: np.ndarray, bottom: np.ndarray, ui: np.ndarray,
+             shade: np.ndarray, background: np.ndarray, img: np.ndarray) -> None:
+    """img[r, c] = the atlas texel of wall seg[c] at row v (0 at the top of the wall, 1 at the
+    floor; v = (r + 0.5 - top[c]) / (bottom[c] - top[c])) times shade[c] where 0 <= v < 1, else
+    background[r]; float32 products truncated to uint8, as numpy's astype does."""
+    height, width = img.shape[0], img.shape[1]
+    tex_rows = atlas.shape[1]
+    for c in range(width):
+        span = bottom[c] - top[c]
+        k, u, s = seg[c], ui[c], shade[c]
+        for r in range(height):
+            v = (r + 0.5 - top[c]) / span
+            if v >= 0 and v < 1:
+                vi = min(max(np.int32(v * tex_rows), 0), tex_rows - 1)
+                for ch in range(3):
+                    img[r, c, ch] = np.uint8(np.float32(atlas[k, vi, u, ch]) * s)
+            else:
+                for ch in range(3):
+                    img[r, c, ch] = np.uint8(background[r, ch])
 
 
 class SyntheticConfig(BaseModel):

@@ -119,3 +119,15 @@ def test_strict_inputs_take_a_stream_only_as_its_producer_sent_it(linked_buses):
     q2 = InputQueue({"x": 5}, lossless=False)
     q2.put("x", b"a", 0.0, LinkTag(9, 1, 5))
     assert q2.stats["x"].received == 1
+
+
+def test_wait_for_returns_when_an_item_of_its_topic_arrives_or_the_time_is_up():
+    q = InputQueue({"x": 2, "y": 2}, lossless=False)
+    assert not q.wait_for("x", 0.01)  # nothing came
+    q.put("y", b"other topic", 0.0)
+    assert not q.wait_for("x", 0.01)  # an item of another topic does not count
+    later = threading.Timer(0.05, lambda: q.put("x", b"frame", 0.0))
+    later.start()
+    assert q.wait_for("x", 30.0)  # returns when it arrives, long before the 30 s
+    later.join()
+    assert q.depth() == {"x": 1, "y": 1}  # waiting takes nothing

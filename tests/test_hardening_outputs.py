@@ -209,6 +209,59 @@ def test_realtime_workers_batch_the_frames_waiting_in_their_ring(tmp_path):
     assert {sup.worker_spec(w).max_batch for w in sup.groups} == {5}
 
 
+def test_a_stage_with_a_batch_wait_pairs_a_lone_frame_only_while_frames_come_often(tmp_path):
+    # run.batch_wait_ms: a frame found alone waits (from its arrival) for a second one when the
+    # recent arrivals came at least that often; the frames' received times are the arrival times
+    import threading
+
+    def worker(waits: dict) -> tuple[Worker, list[int]]:
+        w = _worker(tmp_path, NodeSpec("probe", f"{__name__}:make_probe", {"batchable": True}), max_batch=8,
+                    batch_wait_ms=waits)
+        w.queue = InputQueue({"probe": 8}, lossless=True)
+        waited: list[int] = []
+        wait_for = w.queue.wait_for
+        w.queue.wait_for = lambda topic, timeout: waited.append(1) or wait_for(topic, timeout)  # type: ignore
+        return w, waited
+
+    t0 = time.time()
+    w, waited = worker({"probe": 2000.0})
+    w.handle("probe", _probe(0), t0 - 0.02)  # no arrival seen yet: no wait
+    w.handle("probe", _probe(1), t0 - 0.01)  # one arrival seen: no interval known yet
+    assert not waited and w.stages[0].adapter.seen == [0, 1]  # one at a time (no batch call)
+    # frames 0 and 1 came 10 ms apart (< 2 s): frame 2, alone, waits for frame 3 and takes it along
+    later = threading.Timer(0.05, lambda: w.queue.put("probe", _probe(3), time.time()))
+    later.start()
+    w.handle("probe", _probe(2), time.time())
+    later.join()
+    assert waited == [1] and w.stages[0].adapter.batches == [[2, 3]]
+
+    # frames that came 3 s apart (> 2 s): a lone frame does not wait
+    w, waited = worker({"probe": 2000.0})
+    for f in range(3):
+        w.handle("probe", _probe(f), t0 - 6 + 3 * f)
+    assert not waited and w.stages[0].adapter.seen == [0, 1, 2] and not w.stages[0].adapter.batches
+
+    # a stage not named waits for nothing
+    w, waited = worker({"other": 2000.0})
+    for f in range(3):
+        w.handle("probe", _probe(f), t0 + 0.001 * f)
+    assert not waited and w.stages[0].adapter.seen == [0, 1, 2] and not w.stages[0].adapter.batches
+
+
+def test_batch_waits_reach_the_workers_of_the_stages_they_name(tmp_path):
+    from neoslam_stream.config import ConfigError
+    from neoslam_stream.nodes.pipelines import build_plan
+    from neoslam_stream.runtime.topology import Supervisor
+
+    cfg = load_config("default", {"run": {"batch_wait_ms": {"B": 12.5}, "live": False},
+                                  "projector": {"device": "cpu"}})
+    sup = Supervisor(cfg, build_plan(cfg), tmp_path / "run")
+    assert {w: sup.worker_spec(w).batch_wait_ms for w in sup.groups} == {
+        w: ({"B": 12.5} if w == "B" else {}) for w in sup.groups}
+    with pytest.raises(ConfigError, match="batch_wait_ms"):
+        load_config("default", {"run": {"batch_wait_ms": {"B": -1}}})
+
+
 def test_error_causes_always_add_up_to_the_errors(tmp_path):
     w = _worker(tmp_path, NodeSpec("probe", f"{__name__}:make_probe"))
     for f in range(80):  # more distinct causes than are kept

@@ -129,3 +129,44 @@ def test_heartbeats_name_outages_and_restarted_hosts():
     link._on_heartbeat(_Sample({**beat, "label": "C,D"}))
     assert set(link.silent()) == {"A,B"}
     assert {o["seen_by"] for o in link.all_outages()} == {"C,D"}
+
+
+def test_a_lossless_run_is_drained_once_every_stage_shows_all_it_was_sent_taken(tmp_path):
+    # the supervisor's drain check, no quiet period: each stage's newest stats (taken between two
+    # messages) must show everything its upstream published received and nothing waiting, and the
+    # final topic's messages must all have reached the supervisor
+    from neoslam_stream.config import load_config
+    from neoslam_stream.nodes.pipelines import build_plan
+    from neoslam_stream.runtime.topology import Supervisor
+
+    c = StatsCollector()
+    c.add({"stage": "source", "frames_in": 3, "odom": 0})
+    c.add({"stage": "A", "inputs": {"image": {"received": 3, "depth": 0}}, "published": {"feat": 3}})
+    c.add({"stage": "B", "inputs": {"feat": {"received": 2, "depth": 0}}, "published": {"bits": 2}})
+    assert not c.quiet(["A", "B"], for_s=0.0, fresh_s=60)  # B has not received A's third
+    c.add({"stage": "B", "inputs": {"feat": {"received": 3, "depth": 1}}, "published": {"bits": 2}})
+    assert not c.quiet(["A", "B"], for_s=0.0, fresh_s=60)  # ... it waits in B's queue
+    c.add({"stage": "B", "inputs": {"feat": {"received": 3, "depth": 0}}, "published": {"bits": 3}})
+    assert c.quiet(["A", "B"], for_s=0.0, fresh_s=60)
+    assert not c.quiet(["A", "B"], for_s=60.0, fresh_s=60)  # a quiet period, where one is asked for
+
+    cfg = load_config("default", {"run": {"live": False}})
+    sup = Supervisor(cfg, build_plan(cfg), tmp_path / "run")
+    sup.collector = StatsCollector()
+    sup.collector.add({"stage": "experience_map", "published": {sup.plan.final_topic: 2}})
+    assert not sup._final_arrived()
+    sup.final.add(0, [], T0)
+    assert not sup._final_arrived()
+    sup.final.add(1, [], T0)
+    assert sup._final_arrived()
+
+
+def test_a_queue_reports_received_and_waiting_items_together():
+    from neoslam_stream.runtime.bus import InputQueue
+
+    q = InputQueue({"x": 2}, lossless=False)
+    for f in range(3):  # the third evicts the first
+        q.put("x", b"%d" % f, T0)
+    assert q.counts() == {"x": (3, 1, 2)}
+    q.get(0.1)
+    assert q.counts() == {"x": (3, 1, 1)}  # received - evicted - waiting: one taken

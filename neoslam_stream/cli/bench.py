@@ -78,6 +78,9 @@ def register(bsub: argparse._SubParsersAction) -> None:
     flags.add("--tx-queue", path="bus.tx_queue",
               help="zenoh's transmit queue per link for data, in 64 kB batches (bus.tx_queue)")
     flags.add("--threads", path="run.threads", help='per-stage thread budget as JSON, e.g. \'{"A": 2}\'')
+    flags.add("--batch-wait", path="run.batch_wait_ms",
+              help='per-stage ms a batchable stage may wait for a second frame, as JSON (run.batch_wait_ms), '
+                   'e.g. \'{"B": 20}\'')
     flags.add("--nice", path="run.nice",
               help='per-process niceness as JSON (run.nice), e.g. \'{"C": 10, "monitor": 10}\'')
     flags.add("--cpus", path="run.cpus",

@@ -265,9 +265,27 @@ class InputQueue:
                 self._cond.notify_all()
         return out
 
+    def wait_for(self, topic: str, timeout: float) -> bool:
+        """Wait up to ``timeout`` seconds until an item of ``topic`` is waiting; whether one is."""
+        deadline = time.monotonic() + max(0.0, timeout)
+        with self._cond:
+            while not self._items[topic] and not self._closed:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    break
+                self._cond.wait(left)
+            return bool(self._items[topic])
+
     def depth(self) -> dict[str, int]:
         with self._cond:
             return {t: len(q) for t, q in self._items.items()}
+
+    def counts(self) -> dict[str, tuple[int, int, int]]:
+        """Per topic (received, evicted, depth), read together: every item received and not
+        evicted is either waiting (depth) or was taken. Read apart, an item arriving in between
+        would look taken (a drain check could end a lossless run before it is processed)."""
+        with self._cond:
+            return {t: (s.received, s.evicted, len(self._items[t])) for t, s in self.stats.items()}
 
     def close(self) -> None:
         with self._cond:

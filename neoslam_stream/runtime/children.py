@@ -167,12 +167,14 @@ class ChildProcesses:
             # their end (a stage's last frame, the pose cells' final actions) is still recorded
             watchers = [w for w in workers if any(s.observer for s in self.groups[w])]
             others = [w for w in workers if w not in watchers]
+            # the source and the stages stop together: a lossless run comes here drained (the
+            # source has nothing left in flight), and a live run ends at once (what is still in
+            # flight when the camera stops is lost; its other hosts' workers were stopped already)
+            own_source = ["source"] if "source" in self.procs else []
             if self.lossless:
-                if "source" in self.procs:
-                    stop(["source"], 10)
-                stop(others, 60)
-            else:  # a live run ends at once: what is still in flight when the camera stops is lost
-                stop([n for n in ("source", *others) if n in self.procs], 60)
+                stop(own_source + others, 60)
+            else:
+                stop(own_source + [n for n in others if n in self.procs], 60)
             stop(watchers, 60)
             if "monitor" in self.procs:
                 stop(["monitor"], 30)

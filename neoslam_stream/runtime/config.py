@@ -8,6 +8,7 @@ against the sources' registry, which the runtime does not know).
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any, Literal
 
@@ -115,6 +116,11 @@ class RunSection(Strict):
     startup_timeout: float = Field(300.0, gt=0)
     max_restarts: int = Field(3, ge=0)
     max_batch: int = Field(8, ge=1)
+    #: per batchable stage (keys are stage names, as in ``threads``): milliseconds it may wait for
+    #: a second frame when it finds one alone, used only while frames come at least that often. A
+    #: stage whose cost per frame falls with the batch (B reads its matrix once per batch) then
+    #: spends less CPU per frame, for at most that much latency; not named: no wait
+    batch_wait_ms: dict[str, float] = Field(default_factory=dict)
     log_level: str = "WARNING"
     #: save every stage's state every N source frames (0 = never); see docs/reliability.md
     checkpoint_every: int = Field(0, ge=0)
@@ -133,6 +139,14 @@ class RunSection(Strict):
         bad = {k: n for k, n in v.items() if not 0 <= n <= 19}
         if bad:
             raise ValueError(f"niceness must lie in 0..19 (raising priority needs privileges): {bad}")
+        return v
+
+    @field_validator("batch_wait_ms")
+    @classmethod
+    def _waits(cls, v: dict[str, float]) -> dict[str, float]:
+        bad = {k: w for k, w in v.items() if not (math.isfinite(w) and w >= 0)}
+        if bad:
+            raise ValueError(f"batch_wait_ms must be finite milliseconds >= 0: {bad}")
         return v
 
     @field_validator("cpus")

@@ -138,6 +138,8 @@ class Supervisor(ChildProcesses):
             threads=max(s.threads for s in specs) if wname != "monolithic" else max(
                 1, max(s.threads for s in specs)),
             max_batch=self.cfg.run.max_batch, log_level=self.cfg.run.log_level,
+            batch_wait_ms={s.name: self.cfg.run.batch_wait_ms[s.name] for s in specs
+                           if s.name in self.cfg.run.batch_wait_ms},
             resume_states=resume_states, expected_peers=self.order.index(wname), map_path=self.map_path,
             checkpoint_every=self.cfg.run.checkpoint_every,
             checkpoint_dir=str(self.run_dir / "checkpoint") if self.cfg.run.checkpoint_every else "",
@@ -292,7 +294,10 @@ class Supervisor(ChildProcesses):
                 continue
             waited = time.monotonic() - src_done_at
             if self.lossless:
-                if self.collector.quiet(self._stage_names(), for_s=1.0, fresh_s=1.5):
+                # drained: every stage's newest stats (taken between two messages) show everything
+                # its upstream published received and nothing waiting, and the final topic's
+                # messages all arrived here; no quiet period is needed on top
+                if self.collector.quiet(self._stage_names(), for_s=0.0, fresh_s=1.5) and self._final_arrived():
                     return False
                 # a message lost in transport would keep the strict check false for ever
                 if waited > 20 and self.collector.quiet(self._stage_names(), for_s=10.0, fresh_s=1.5,
@@ -304,6 +309,14 @@ class Supervisor(ChildProcesses):
                     return False
             elif waited >= self.cfg.run.drain_s:
                 return False
+
+    def _final_arrived(self) -> bool:
+        """Whether every message a stage published on the final topic reached this process (the
+        report's frames out and latencies are counted from them)."""
+        topic = self.plan.final_topic
+        sent = sum((st.get("published") or {}).get(topic, 0) for st in self.collector.snapshot().values())
+        with self.final.lock:
+            return self.final.messages >= sent
 
     def _complete_report(self, interrupted: bool) -> dict[str, Any]:
         """report.json: the monitor's (when it wrote one in this run), with every figure the

@@ -24,7 +24,7 @@ import signal
 import sys
 import time
 import traceback
-from collections import defaultdict
+from collections import defaultdict, deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -62,6 +62,8 @@ class WorkerSpec:
     stats_hz: float = 2.0
     #: micro-batching: at most this many waiting frames of one topic are processed together.
     max_batch: int = 8
+    #: stage name -> ms it may wait for a second frame of a batch (RunSection.batch_wait_ms)
+    batch_wait_ms: dict[str, float] = field(default_factory=dict)
     #: topics that are published even when consumed inside the chain.
     publish_internal: list[str] = field(default_factory=list)
     log_level: str = "WARNING"
@@ -98,6 +100,8 @@ class Worker(WorkerStats, CheckpointCuts):
         self.stop_requested = False
         self.stages: list[StageRuntime] = []
         self.consumers: dict[str, list[int]] = defaultdict(list)  # topic -> stage indices
+        #: per batchable topic: arrival times of its latest frames (see _batch_partners)
+        self._arrivals: dict[str, deque[float]] = {}
         #: topics a stage of this worker produces for a later stage of it: routed directly
         self.produced_here: set[str] = set()
         #: those of them that a non-observer consumes: not published on the bus (monolithic)
@@ -308,6 +312,9 @@ class Worker(WorkerStats, CheckpointCuts):
         adapter = self.stages[first].adapter
         if adapter.batchable and self.spec.max_batch > 1 and self.queue is not None:
             batch += self.queue.get_more(topic, self.spec.max_batch - 1)
+            if len(batch) == 1:
+                batch += self._batch_partners(first, topic, received)
+            self._note_arrivals(topic, [r for _p, r in batch])
         msgs: list[Message] = []
         recv: list[float] = []
         expected = self.stages[first].to_adapter.get(topic, topic)
@@ -329,19 +336,42 @@ class Worker(WorkerStats, CheckpointCuts):
         for i in idxs:
             self._run_stage(i, topic, msgs, recv)
 
+    def _note_arrivals(self, topic: str, received: list[float]) -> None:
+        """Keep the arrival times of a batchable topic's last ``max_batch`` + 1 frames."""
+        times = self._arrivals.setdefault(topic, deque(maxlen=self.spec.max_batch + 1))
+        times.extend(sorted(received))
+
+    def _batch_partners(self, idx: int, topic: str, received: float) -> list[tuple[bytes, float]]:
+        """A frame found alone waits for a second one (``batch_wait_ms`` of its stage, counted
+        from its arrival) while frames have been arriving at least that often; then every frame
+        waiting joins its batch. Nothing when it comes too rarely: the wait would only add latency."""
+        wait_s = self.spec.batch_wait_ms.get(self.stages[idx].name, 0.0) / 1000.0
+        times = self._arrivals.get(topic)
+        if wait_s <= 0 or not times or len(times) < 2 or self.queue is None:
+            return []
+        gap = (times[-1] - times[0]) / (len(times) - 1)  # the mean interval between recent arrivals
+        if gap > wait_s or not self.queue.wait_for(topic, received + wait_s - time.time()):
+            return []
+        return self.queue.get_more(topic, self.spec.max_batch - 1)
+
     # ------------------------------------------------------------------ main loop
     def loop(self) -> None:
         assert self.queue is not None
         period = 1.0 / self.spec.stats_hz
         next_stats = time.monotonic()
+        worked = False  # handled a message since the last stats
         while True:
             item = self.queue.get(timeout=0.1)
             if item is not None:
                 self.handle(*item)
+                worked = True
             elif self.stop_requested:
                 break
-            if time.monotonic() >= next_stats:
+            # on the period; and in a lossless run also as soon as the worker falls idle after work,
+            # so that the supervisor sees the pipeline drained without waiting for the next period
+            if time.monotonic() >= next_stats or (worked and item is None and self.spec.lossless):
                 self.publish_stats()
+                worked = False
                 next_stats = time.monotonic() + period
             if self.stop_requested and not self.spec.lossless:
                 break

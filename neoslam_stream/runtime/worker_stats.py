@@ -168,16 +168,15 @@ class WorkerStats:
         pss = self._pss_mb()
         ct = self._proc.cpu_times()
         cpu_s = ct.user + ct.system
-        depth = self.queue.depth() if self.queue else {}
-        qstats = self.queue.stats if self.queue else {}
+        counts = self.queue.counts() if self.queue else {}
         out = []
         now = time.time()
         for i, st in enumerate(self.stages):
             inputs = {}
             for t in st.inputs:
-                if t in qstats and self.consumers[t][0] == i:
-                    inputs[t] = {"received": qstats[t].received, "evicted": qstats[t].evicted,
-                                 "depth": depth.get(t, 0)}
+                if t in counts and self.consumers[t][0] == i:
+                    received, evicted, depth = counts[t]
+                    inputs[t] = {"received": received, "evicted": evicted, "depth": depth}
             try:
                 info = st.adapter.info()
             except Exception as exc:  # info is diagnostic: never let it break stats

@@ -71,6 +71,35 @@ def test_grey_mode_copies_grey_into_three_channels(rand_fx):
     np.testing.assert_allclose(raw[1], raw[2], atol=1e-6)
 
 
+def _preprocess_by_definition(rgb: np.ndarray, grey: bool) -> np.ndarray:
+    """The paper's preprocessing written out: grey copied into three channels, shorter side to 256
+    (bilinear), the centre 224 x 224, scaled to [0, 1] and normalised per channel, channels first."""
+    import cv2
+
+    img = rgb
+    if grey:
+        img = np.repeat(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)[:, :, None], 3, axis=2)
+    h, w = img.shape[:2]
+    nh, nw = max(256, round(h * 256.0 / min(h, w))), max(256, round(w * 256.0 / min(h, w)))
+    img = cv2.resize(img, (nw, nh), interpolation=cv2.INTER_LINEAR)
+    top, left = (nh - 224) // 2, (nw - 224) // 2
+    img = img[top:top + 224, left:left + 224].astype(np.float32) / 255.0
+    return np.ascontiguousarray(((img - F.IMAGENET_MEAN) / F.IMAGENET_STD).transpose(2, 0, 1))
+
+
+@pytest.mark.parametrize("colour", ["grey", "rgb"])
+def test_preprocessing_gives_the_definition_bit_for_bit(colour):
+    # grey frames go through the resize as one channel, then fill the three: the same numbers
+    fx = F.VisualFeatureExtractor.__new__(F.VisualFeatureExtractor)
+    fx.config = F.FeatureConfig(colour=colour)
+    rng = np.random.default_rng(5)
+    for h, w in [(240, 416), (120, 160), (480, 640), (300, 257), (224, 224), (50, 60)]:
+        img = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+        got = fx.preprocess(img)
+        assert got.shape == (3, 224, 224) and got.dtype == np.float32 and got.flags.c_contiguous
+        assert np.array_equal(got, _preprocess_by_definition(img, colour == "grey")), (colour, h, w)
+
+
 def _torchvision_state(seed=0):
     g = torch.Generator().manual_seed(seed)
     shapes = {"features.0": (64, 3, 11, 11), "features.3": (192, 64, 5, 5), "features.6": (384, 192, 3, 3),

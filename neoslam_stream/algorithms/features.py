@@ -172,17 +172,27 @@ class VisualFeatureExtractor:
         return img[y0:y1, x0:x1]
 
     def preprocess(self, rgb: np.ndarray) -> np.ndarray:
-        """HxWx3 uint8 RGB -> 3x224x224 float32 normalised (shorter side 256, centre crop 224)."""
+        """HxWx3 uint8 RGB -> 3x224x224 float32 normalised (shorter side 256, centre crop 224).
+
+        ``colour: grey`` gives the backbone the grey image in all three channels. The grey image is
+        resized and scaled once, and each channel normalised from it: the same numbers as resizing
+        the three equal channels (the resize treats channels alike) in a third of the work."""
         img = self.crop_array(rgb)
-        if self.config.colour == "grey":
-            grey = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2GRAY)
-            img = np.repeat(grey[:, :, None], 3, axis=2)
+        grey = self.config.colour == "grey"
+        if grey:
+            img = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2GRAY)
         h, w = img.shape[:2]
         scale = 256.0 / min(h, w)
         nh, nw = max(256, round(h * scale)), max(256, round(w * scale))
         img = cv2.resize(np.ascontiguousarray(img), (nw, nh), interpolation=cv2.INTER_LINEAR)
         top, left = (nh - 224) // 2, (nw - 224) // 2
         img = img[top:top + 224, left:left + 224].astype(np.float32) / 255.0
+        if grey:
+            out = np.empty((3, 224, 224), np.float32)
+            for c in range(3):
+                np.subtract(img, IMAGENET_MEAN[c], out=out[c])
+                np.divide(out[c], IMAGENET_STD[c], out=out[c])
+            return out
         img = (img - IMAGENET_MEAN) / IMAGENET_STD
         return np.ascontiguousarray(img.transpose(2, 0, 1))
 

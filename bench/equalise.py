@@ -1,0 +1,81 @@
+"""Does equalising each frame's grey histogram before stage A keep places under other light?
+
+A global, monotonic change of brightness (gain, gamma) leaves a frame's histogram-equalised grey
+image nearly as it was, so equalising before the backbone is the classic way to make a front end
+indifferent to light. Measured here through the default front end (A -> B -> C -> D, the
+calibrated decision as it ships), with and without cv2.equalizeHist on each frame's grey image
+(and with contrast-limited equalisation per tile, CLAHE, as usually set),
+on parts that neither chose a constant nor report one (bench/generalisation.py's PARTS): the
+perturbed sparse stand-ins of seeds 6-8 (their second lap under other light), the plain stand-in
+of seed 6, Nordland's validation subsets 2 and 4 and synthetic world 1. Nothing is chosen from it.
+Writes bench/results/equalise.json.
+
+Run: ``.venv/bin/python bench/equalise.py``.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import generalisation as G  # noqa: E402
+from streams import Stream, nordland_stream, proxy_stream, synthetic_stream  # noqa: E402
+
+PARTS = ["hard:6", "hard:7", "hard:8", "sparse:6", "nordland:2", "nordland:4", "synthetic:1"]
+
+
+#: contrast-limited equalisation as usually set (clip limit 2, 8 x 8 tiles), not tuned here
+CLAHE = {"clipLimit": 2.0, "tileGridSize": (8, 8)}
+
+
+def equalised(img: np.ndarray, limited: bool = False) -> np.ndarray:
+    """The frame's grey image, histogram-equalised (over the whole frame, or contrast-limited per
+    tile), in three channels (A takes grey frames so)."""
+    grey = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2GRAY)
+    grey = cv2.createCLAHE(**CLAHE).apply(grey) if limited else cv2.equalizeHist(grey)
+    return np.repeat(grey[:, :, None], 3, axis=2)
+
+
+def stream_of(part: str) -> Stream:
+    kind, index = part.split(":")
+    if kind in ("hard", "sparse"):
+        return proxy_stream(int(index), G.CACHE, hard=kind == "hard")
+    if kind == "nordland":
+        return nordland_stream(int(index), G.CACHE)
+    return synthetic_stream(int(index), G.CACHE)
+
+
+def figures(part: str) -> dict[str, Any]:
+    stream = stream_of(part)
+    cfg = G.default_config(stream.platform)
+    plain = stream.frames
+    eq = replace(stream, name=f"{stream.name}_equalised", frames=lambda: (equalised(i) for i in plain()))
+    limited = replace(stream, name=f"{stream.name}_clahe", frames=lambda: (equalised(i, True) for i in plain()))
+    out = {}
+    for name, s in (("as_shipped", stream), ("equalised", eq), ("contrast_limited", limited)):
+        r = G.frontend_figures(s, cfg)
+        out[name] = {k: r.get(k) for k in ("closures", "correct", "precision", "recall")}
+    return out
+
+
+def main() -> None:
+    res = {"what": __doc__.split("\n\n")[0], "parts": {}}
+    for part in PARTS:
+        res["parts"][part] = figures(part)
+        print(part, json.dumps(res["parts"][part]), flush=True)
+    path = G.RESULTS / "equalise.json"
+    path.write_text(json.dumps(res, indent=1) + "\n")
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()

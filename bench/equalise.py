@@ -28,7 +28,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import generalisation as G  # noqa: E402
-from streams import Stream, nordland_stream, proxy_stream, synthetic_stream  # noqa: E402
 
 PARTS = ["hard:6", "hard:7", "hard:8", "sparse:6", "nordland:2", "nordland:4", "synthetic:1"]
 
@@ -45,17 +44,8 @@ def equalised(img: np.ndarray, limited: bool = False) -> np.ndarray:
     return np.repeat(grey[:, :, None], 3, axis=2)
 
 
-def stream_of(part: str) -> Stream:
-    kind, index = part.split(":")
-    if kind in ("hard", "sparse"):
-        return proxy_stream(int(index), G.CACHE, hard=kind == "hard")
-    if kind == "nordland":
-        return nordland_stream(int(index), G.CACHE)
-    return synthetic_stream(int(index), G.CACHE)
-
-
 def figures(part: str) -> dict[str, Any]:
-    stream = stream_of(part)
+    stream = G.part_stream(part)
     cfg = G.default_config(stream.platform)
     plain = stream.frames
     eq = replace(stream, name=f"{stream.name}_equalised", frames=lambda: (equalised(i) for i in plain()))

@@ -100,7 +100,7 @@ class Worker(WorkerStats, CheckpointCuts):
         self.stop_requested = False
         self.stages: list[StageRuntime] = []
         self.consumers: dict[str, list[int]] = defaultdict(list)  # topic -> stage indices
-        #: per batchable topic: arrival times of its latest frames (see _batch_partners)
+        #: per topic of a stage with a batch wait: arrival times of its latest frames (_batch_partners)
         self._arrivals: dict[str, deque[float]] = {}
         #: topics a stage of this worker produces for a later stage of it: routed directly
         self.produced_here: set[str] = set()
@@ -312,9 +312,11 @@ class Worker(WorkerStats, CheckpointCuts):
         adapter = self.stages[first].adapter
         if adapter.batchable and self.spec.max_batch > 1 and self.queue is not None:
             batch += self.queue.get_more(topic, self.spec.max_batch - 1)
-            if len(batch) == 1:
-                batch += self._batch_partners(first, topic, received)
-            self._note_arrivals(topic, [r for _p, r in batch])
+            wait_s = self.spec.batch_wait_ms.get(self.stages[first].name, 0.0) / 1000.0
+            if wait_s > 0:
+                if len(batch) == 1:
+                    batch += self._batch_partners(topic, received, wait_s)
+                self._note_arrivals(topic, [r for _p, r in batch])
         msgs: list[Message] = []
         recv: list[float] = []
         expected = self.stages[first].to_adapter.get(topic, topic)
@@ -341,13 +343,14 @@ class Worker(WorkerStats, CheckpointCuts):
         times = self._arrivals.setdefault(topic, deque(maxlen=self.spec.max_batch + 1))
         times.extend(sorted(received))
 
-    def _batch_partners(self, idx: int, topic: str, received: float) -> list[tuple[bytes, float]]:
-        """A frame found alone waits for a second one (``batch_wait_ms`` of its stage, counted
-        from its arrival) while frames have been arriving at least that often; then every frame
-        waiting joins its batch. Nothing when it comes too rarely: the wait would only add latency."""
-        wait_s = self.spec.batch_wait_ms.get(self.stages[idx].name, 0.0) / 1000.0
+    def _batch_partners(self, topic: str, received: float, wait_s: float) -> list[tuple[bytes, float]]:
+        """A frame found alone waits for a second one (up to ``wait_s``, its stage's
+        ``batch_wait_ms``, counted from its arrival) while frames have been arriving at least that
+        often; then every frame waiting joins its batch. Nothing when they come too rarely: the
+        wait would only add latency."""
+        assert self.queue is not None
         times = self._arrivals.get(topic)
-        if wait_s <= 0 or not times or len(times) < 2 or self.queue is None:
+        if not times or len(times) < 2:
             return []
         gap = (times[-1] - times[0]) / (len(times) - 1)  # the mean interval between recent arrivals
         if gap > wait_s or not self.queue.wait_for(topic, received + wait_s - time.time()):

@@ -3,7 +3,9 @@
 ``features.inference``: ``eager`` (the module as written) against ``frozen`` (traced, frozen and
 optimised for inference on a CPU, the default). Time: the default's backbone on one thread, one
 frame at a time (preprocessing included), on the embedded synthetic world's frames, both variants
-interleaved in three rounds. Closures: B's bits from each variant on the same frames (the default
+interleaved in three rounds; and the frozen backbone on batches of 1-8 frames (``by_batch``: the
+first call of each batch size, which ``warm_up`` pays before a live run, and the time per frame
+after it). Closures: B's bits from each variant on the same frames (the default
 route's first 1000 frames, Nordland's summer and winter test subset), in order through the same
 running centring; a frame whose bits differ is counted (identical bits give identical templates
 downstream). Writes bench/results/stage_a.json.
@@ -52,6 +54,27 @@ def timing(frames: list[np.ndarray], rounds: int = 3) -> dict[str, dict[str, flo
                 "p95_ms": 1e3 * float(np.percentile(x, 95)), "frames": len(x)} for v, x in t.items()}
 
 
+def by_batch(frames: list[np.ndarray], max_batch: int = 8, rounds: int = 8) -> dict[str, dict[str, float]]:
+    """The frozen backbone (one thread) on batches of 1..``max_batch`` frames: the first call of each
+    size on a fresh extractor (what ``warm_up`` pays before a live run), then the median time per
+    frame over ``rounds`` calls of each size, interleaved."""
+    cfg = load_config("default").features.model_copy(update={"inference": "frozen", "threads": 1})
+    fx = VisualFeatureExtractor(cfg)
+    first = {}
+    for n in range(1, max_batch + 1):
+        t0 = time.perf_counter()
+        fx.extract_batch(frames[:n])
+        first[n] = 1e3 * (time.perf_counter() - t0)
+    fx.warm_up(max_batch)
+    t: dict[int, list[float]] = {n: [] for n in range(1, max_batch + 1)}
+    for _ in range(rounds):
+        for n in t:
+            t0 = time.perf_counter()
+            fx.extract_batch(frames[:n])
+            t[n].append(1e3 * (time.perf_counter() - t0) / n)
+    return {str(n): {"first_call_ms": first[n], "p50_ms_per_frame": float(np.median(t[n]))} for n in t}
+
+
 def bits_agreement(frames: list[np.ndarray]) -> dict[str, int]:
     bits = {}
     for v in VARIANTS:
@@ -71,7 +94,7 @@ def main() -> int:
     route = [sf.image for sf in SyntheticWorldSource(**{**cfg.source.params, "frames": 1000})]
     proto = load_settings("nordland")["protocol"]
     summer, winter, _ = load_frames(proto["step"], min_std=proto["min_std"])
-    res = {"time_per_frame": timing(route[:200]),
+    res = {"time_per_frame": timing(route[:200]), "by_batch": by_batch(route[:8]),
            "bits": {"synthetic_route_1000": bits_agreement(route),
                     "nordland_summer_winter": bits_agreement(summer + winter)}}
     e, f = res["time_per_frame"]["eager"], res["time_per_frame"]["frozen"]

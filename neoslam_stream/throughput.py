@@ -130,7 +130,7 @@ def rate_sweep(config: str | None, rates: list[float], duration: float, topologi
         row.update({"projection": cfg.projector.projection, "matrix_dtype": cfg.projector.matrix_dtype,
                     "feature_bits": cfg.projector.feature_bits, "max_batch": cfg.run.max_batch,
                     "nice": dict(cfg.run.nice), "cpus": dict(cfg.run.cpus), "tx_queue": cfg.bus.tx_queue,
-                    "image_capacity": cfg.bus.capacity.get("image"),
+                    "image_capacity": image_capacity(cfg, topo),
                     "loss_breakdown": res.report.get("loss_breakdown")})  # where frames were lost
         runs.append(row)
         if progress:
@@ -138,6 +138,18 @@ def rate_sweep(config: str | None, rates: list[float], duration: float, topologi
                   f"bottleneck {row['bottleneck']} ({row['bottleneck_tau_ms']:.1f} ms), "
                   f"latency p50 {row['latency_p50_ms']:.0f} ms", flush=True)
     return runs
+
+
+def image_capacity(cfg: Any, topology: str) -> int:
+    """The frames A's image ring holds in this run: ``bus.capacity.image`` when set, else the
+    plan's (a batch before the batching stage A) for the pipeline, ``bus.default_capacity`` for the
+    monolithic process (runtime/topology.py)."""
+    from .nodes.pipelines import build_plan
+
+    if "image" in cfg.bus.capacity:
+        return int(cfg.bus.capacity["image"])
+    plan = build_plan(cfg).capacity if topology == "pipeline" else {}
+    return int(plan.get("image", cfg.bus.default_capacity))
 
 
 def _scaling_rows(stats_path: Path, step: int) -> list[dict[str, Any]]:

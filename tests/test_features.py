@@ -214,3 +214,24 @@ def test_frozen_inference_gives_the_modules_features(backbone):
     assert a.shape == b.shape == (3, frozen.output_dim)
     np.testing.assert_allclose(b, a, rtol=0, atol=1e-5 * float(np.abs(a).max()))
     np.testing.assert_array_equal(np.stack([frozen.extract(i) for i in imgs]), b)
+
+
+def test_warm_up_runs_every_batch_size_and_changes_no_feature(monkeypatch):
+    # the frozen backbone is called twice on a blank batch of each size 1..max_batch (torch.jit
+    # specialises to each shape on its first calls); features are the same before and after, and
+    # the module as written (eager) is not called at all
+    imgs = [np.random.default_rng(i).integers(0, 256, (60, 80, 3), dtype=np.uint8) for i in range(3)]
+    frozen = F.VisualFeatureExtractor(backbone="random_alexnet", device="cpu")
+    before = frozen.extract_batch(imgs)
+    sizes = []
+    net = frozen.net
+    monkeypatch.setattr(frozen, "net", lambda x: (sizes.append(x.shape[0]), net(x))[1])
+    frozen.warm_up(3)
+    assert sizes == [1, 1, 2, 2, 3, 3]
+    np.testing.assert_array_equal(frozen.extract_batch(imgs), before)
+    eager = F.VisualFeatureExtractor(backbone="random_alexnet", device="cpu", inference="eager")
+    called = []
+    eager.module = eager.net = lambda x: called.append(x.shape[0])
+    eager.warm_up(3)
+    assert called == []
+

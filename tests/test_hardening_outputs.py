@@ -46,6 +46,9 @@ class ProbeNode(Node):
         self.seen: list[int] = []
         self.batches: list[list[int]] = []
 
+    def warm_up(self, max_batch):
+        self.warmed = max_batch
+
     def process(self, topic, msg):
         what = msg["what"]
         if what == "invalid":
@@ -207,6 +210,15 @@ def test_realtime_workers_batch_the_frames_waiting_in_their_ring(tmp_path):
     cfg = load_config("default", {"run": {"mode": "realtime", "max_batch": 5, "live": False}})
     sup = Supervisor(cfg, build_plan(cfg), tmp_path / "run")
     assert {sup.worker_spec(w).max_batch for w in sup.groups} == {5}
+
+
+def test_a_real_time_worker_warms_its_batching_stages_up_before_the_first_frame(tmp_path):
+    # Node.warm_up(max_batch) is called after setup in a real-time run, for a batchable node only
+    # (a live stream must not wait for a first call's one-time costs); a lossless run needs none
+    for lossless, batchable, expected in ((False, True, 6), (False, False, None), (True, True, None)):
+        w = _worker(tmp_path, NodeSpec("probe", f"{__name__}:make_probe", {"batchable": batchable}),
+                    max_batch=6, lossless=lossless)
+        assert getattr(w.stages[0].adapter, "warmed", None) == expected
 
 
 def test_a_stage_with_a_batch_wait_pairs_a_lone_frame_only_while_frames_come_often(tmp_path):

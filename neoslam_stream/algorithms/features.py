@@ -196,6 +196,21 @@ class VisualFeatureExtractor:
         img = (img - IMAGENET_MEAN) / IMAGENET_STD
         return np.ascontiguousarray(img.transpose(2, 0, 1))
 
+    def warm_up(self, max_batch: int) -> None:
+        """Run the frozen backbone on blank batches of every size up to ``max_batch``, twice each:
+        torch.jit specialises a frozen graph to each input shape on its first calls, which take up
+        to twice as long (bench/stage_a.py ``by_batch``), long enough for a live camera's frames to
+        be evicted while A waits. The module as written (eager, a GPU) has no such cost and is
+        left alone."""
+        if self.net is self.module:
+            return
+        import torch
+
+        with torch.inference_mode():
+            for n in range(1, max_batch + 1):
+                for _ in range(2):
+                    self.net(torch.zeros(n, 3, 224, 224, device=self.device))
+
     def extract_batch(self, rgbs: Sequence[np.ndarray]) -> np.ndarray:
         """Several RGB frames -> (n, output_dim) float32, one forward pass."""
         if not rgbs:

@@ -29,6 +29,10 @@ class FeatureNode(Node):
     def setup(self) -> None:
         self.extractor = VisualFeatureExtractor(self.config)
 
+    def warm_up(self, max_batch: int) -> None:
+        assert self.extractor is not None
+        self.extractor.warm_up(max_batch)
+
     def process(self, topic: str, msg: Message) -> Output:
         return self.process_batch(topic, [msg])
 

@@ -25,8 +25,9 @@ class Strict(BaseModel):
 
 
 #: input queue capacity of the runtime's own topics unless configured (see BusConfig.capacity); a
-#: plan gives those of its nodes' topics (PipelinePlan.capacity)
-DEFAULT_CAPACITY = {"image": 2, "odom": 256, "groundtruth": 256}
+#: plan gives those of its nodes' topics and may give the image ring's (PipelinePlan.capacity),
+#: which otherwise holds ``default_capacity`` frames
+DEFAULT_CAPACITY = {"odom": 256, "groundtruth": 256}
 
 
 class BusConfig(Strict):
@@ -51,9 +52,10 @@ class BusConfig(Strict):
     #: not send within zenoh's 1 ms (an image is 300 kB for the synthetic world's 416x240 frames);
     #: 16 (1 MB) holds three such frames or one 640x480 RGB frame (docs/runtime.md)
     tx_queue: int | None = Field(16, ge=1, le=64)
-    #: input queue capacity per topic (real-time: ring, drop-oldest; lossless: FIFO, blocks).
-    #: image: the newest frame plus one, so a stage stalled for two frame periods loses nothing;
-    #: odom and groundtruth: tiny, and path integration needs every one (docs/runtime.md)
+    #: input queue capacity per topic (real-time: ring, drop-oldest; lossless: FIFO, blocks); a
+    #: topic named here overrides the plan's. odom and groundtruth: tiny, and path integration needs
+    #: every one; image: the plan's (a batch before a batching stage) or ``default_capacity``
+    #: (docs/runtime.md)
     capacity: dict[str, int] = Field(default_factory=lambda: dict(DEFAULT_CAPACITY))
     default_capacity: int = Field(2, ge=1)
     #: lossless mode: the source runs at most this many frames ahead of the final topic

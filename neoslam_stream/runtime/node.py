@@ -67,6 +67,11 @@ class Node:
     def setup(self) -> None:
         """Heavy initialisation (model weights, numba compilation); called once in the worker process."""
 
+    def warm_up(self, max_batch: int) -> None:
+        """Pay one-time costs of the first calls before the first frame (a real-time worker calls
+        it after ``setup`` with the most messages it may hand ``process_batch`` at once), so that
+        they do not stall a live stream; default: nothing."""
+
     def process(self, topic: str, msg: Message) -> Output:
         raise NotImplementedError
 

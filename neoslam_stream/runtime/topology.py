@@ -122,7 +122,10 @@ class Supervisor(ChildProcesses):
         specs = self.groups[wname]
         listen, connect = self._links(wname)
         connect += [e for s in specs for e in s.connect if e not in connect]
-        caps = {**self.plan.capacity, **self.cfg.bus.capacity}
+        plan_caps = self.plan.capacity
+        if wname == "monolithic":  # the original design keeps the newest frames, not a batch
+            plan_caps = {t: c for t, c in plan_caps.items() if t not in self.plan.consumed_source_topics}
+        caps = {**plan_caps, **self.cfg.bus.capacity}
         for s in specs:  # what a node needs at least (the recorder must not lose rows)
             for t, c in s.capacity.items():
                 caps[t] = max(c, caps.get(t, self.cfg.bus.default_capacity))

@@ -139,6 +139,8 @@ class Worker(WorkerStats, CheckpointCuts):
         imported = load_map_file(self.spec.map_path)["stages"] if self.spec.map_path else {}
         for st in self.stages:
             st.adapter.setup()
+            if not self.spec.lossless and st.adapter.batchable:
+                st.adapter.warm_up(self.spec.max_batch)
             path = self.spec.resume_states.get(st.name)
             if path:
                 self._load_state(st, load_state_file(path), path)

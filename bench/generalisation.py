@@ -3,12 +3,13 @@
 Each data set runs the single default (configs/default.yaml, with only the data set's physical
 quantities under ``platform``), the paper profile (configs/paper.yaml) and RatSLAM's local view
 with the default's calibrated decision, side by side. The calibrated decision's constants (z_min,
-rho) are chosen on validation parts by ``CHOICE_RULE`` and reported on held-out parts; the
-validation and test parts are disjoint (``PARTS``). Front-end figures: loop-closure precision and
-recall through the real A -> B -> C -> D (docs/mapping.md defines them per data set); the
-synthetic route also runs the back end (trajectory errors), and the TUC corridor the back end
-alone. Writes bench/results/generalisation.json; ``--table`` prints the README's table.
-Run: ``.venv/bin/python bench/generalisation.py [--only nordland,synthetic,proxies,tuc,route,route2] [--table]``.
+rho) are chosen on validation parts by ``CHOICE_RULE``, A's light setting (``features.photometric``)
+by ``LIGHT_RULE``, and both are reported on held-out parts; the validation and test parts are
+disjoint (``PARTS``). Front-end figures: loop-closure precision and recall through the real
+A -> B -> C -> D (docs/mapping.md defines them per data set); the synthetic route also runs the
+back end (trajectory errors), and the TUC corridor the back end alone. Writes bench/results/generalisation.json; ``--table`` prints the README's table.
+Run: ``.venv/bin/python bench/generalisation.py [--only light,choice,nordland,synthetic,proxies,tuc,route,route2]
+[--table]``.
 """
 
 from __future__ import annotations
@@ -40,13 +41,18 @@ PARTS = {"validation": ["nordland:2", "nordland:4", "nordland:6", "synthetic:1",
                         "sparse:1", "sparse:2"],
          "test": ["nordland:0", "synthetic:0", "synthetic:2", "sparse:0", "sparse:3", "sparse:4", "sparse:5",
                   "hard:0", "hard:1", "hard:2", "hard:3"]}
-GRID = {"z_min": [3.0, 3.5, 4.0, 4.5], "rho": [0.7, 0.9, 1.0, 1.1]}
+GRID = {"z_min": [3.0, 3.5, 4.0, 4.5], "rho": [0.7, 0.9, 1.0, 1.1, 1.2, 1.3]}
 #: precision each kind of validation part must reach, with a margin over the targets (Nordland's
 #: 0.9, the synthetic world's 0.99); among the grid points that reach every one, the highest mean
-#: recall over the validation parts wins
+#: recall over the validation parts wins (up to TIE)
 BARS = {"nordland": 0.93, "synthetic": 0.99, "sparse": 0.95}
+#: grid points whose mean recall is within this of the best feasible one are ties, and a tie goes to
+#: the larger z_min, then the larger rho: the more conservative decision, whose precision keeps room
+#: over the bars (at z_min 3 Nordland's subset 4 sits at 0.933 against its 0.93)
+TIE = 0.005
 CHOICE_RULE = ("highest mean recall over the validation parts among the grid points whose precision reaches "
-               f"{BARS} on every validation part")
+               f"{BARS} on every validation part; points within {TIE} of it are ties, won by the larger z_min, "
+               "then the larger rho")
 
 
 def default_config(platform: dict[str, Any] | None = None, **calibration: Any) -> Any:
@@ -122,11 +128,42 @@ def choose(valid: dict[str, dict[str, Any]]) -> dict[str, Any]:
         grid.append(row)
         print("grid", z, rho, ok, round(row["mean_recall"], 3), flush=True)
     feasible = [g for g in grid if g["reaches_bars"]]
-    best = max(feasible, key=lambda g: g["mean_recall"]) if feasible else None
+    best = None
+    if feasible:
+        top = max(g["mean_recall"] for g in feasible)
+        best = max((g for g in feasible if g["mean_recall"] >= top - TIE), key=lambda g: (g["z_min"], g["rho"]))
     shipped = default_config().spatial_view.calibration
     choice = None if best is None else {"z_min": best["z_min"], "rho": best["rho"]}
     return {"rule": CHOICE_RULE, "grid": grid, "choice": choice,
             "choice_is_the_default": choice == {"z_min": shipped.z_min, "rho": shipped.rho}}
+
+
+#: A's input under each light setting (features.photometric); chosen by LIGHT_RULE on the validation
+#: parts at the calibrated decision as shipped
+LIGHT = ["none", "log_standardise"]
+LIGHT_RULE = ("highest mean recall over the validation parts among the settings whose precision reaches "
+              f"{BARS} on every validation part")
+
+
+def choose_light(parts: list[str]) -> dict[str, Any]:
+    """Each photometric setting of A's input through the default front end (its calibrated decision
+    as shipped) on the validation parts, and the setting ``LIGHT_RULE`` picks."""
+    rows = []
+    for light in LIGHT:
+        row: dict[str, Any] = {"photometric": light}
+        for part in parts:
+            stream = part_stream(part)
+            cfg = load_config("default", {"platform": stream.platform, "features": {"photometric": light}})
+            row[part] = frontend_figures(stream, cfg)
+            row[part].pop("calibration", None)
+        row["reaches_bars"] = all((row[p]["precision"] or 0) >= BARS[p.split(":")[0]] for p in parts)
+        row["mean_recall"] = float(np.mean([row[p]["recall"] for p in parts]))
+        rows.append(row)
+        print("light", light, row["reaches_bars"], round(row["mean_recall"], 3), flush=True)
+    feasible = [r for r in rows if r["reaches_bars"]]
+    best = max(feasible, key=lambda r: r["mean_recall"])["photometric"] if feasible else None
+    return {"rule": LIGHT_RULE, "rows": rows, "choice": best,
+            "choice_is_the_default": best == load_config("default").features.photometric}
 
 
 def frontends(parts: list[str]) -> dict[str, Any]:
@@ -191,7 +228,7 @@ def route(seed: int = 0) -> dict[str, Any]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--only", default="choice,nordland,synthetic,proxies,tuc,route,route2")
+    ap.add_argument("--only", default="light,choice,nordland,synthetic,proxies,tuc,route,route2")
     ap.add_argument("--out", default=str(RESULTS / "generalisation.json"))
     ap.add_argument("--table", action="store_true", help="print the README table from --out and stop")
     args = ap.parse_args()
@@ -204,6 +241,8 @@ def main() -> None:
         return
     only = set(args.only.split(","))
     res["parts"] = PARTS
+    if "light" in only:
+        res["light"] = choose_light(PARTS["validation"])
     if "choice" in only:
         valid = {}
         for part in PARTS["validation"]:

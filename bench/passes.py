@@ -19,6 +19,7 @@ Run: ``.venv/bin/python bench/passes.py [--passes 10] [--out bench/results/passe
 from __future__ import annotations
 
 import argparse
+import hashlib
 import itertools
 import json
 import os
@@ -33,13 +34,23 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from neoslam_stream.algorithms.frontend import FrontEnd  # noqa: E402
 from neoslam_stream.config import load_config  # noqa: E402
 
-CACHE = Path(os.environ.get("NEOSLAM_CACHE", "/tmp/neoslam_generalisation")) / "passes_cells_10.pkl"
+CACHE = Path(os.environ.get("NEOSLAM_CACHE", "/tmp/neoslam_generalisation"))
 RECORDED = 10
 STRETCH = (800, 2400)
 
 
-def record(path: Path = CACHE) -> dict[str, Any]:
+def cache_path() -> Path:
+    """Where the recorded cells are kept: named by the default's A, B and C settings, so that a
+    change to any of them records the passes anew instead of replaying another front end's cells."""
+    cfg = load_config("default")
+    sections = [cfg.features.model_dump(), cfg.projector.model_dump(), cfg.neocortex.model_dump()]
+    key = hashlib.sha1(json.dumps(sections, sort_keys=True, default=str).encode()).hexdigest()[:10]
+    return CACHE / f"passes_cells_{RECORDED}_{key}.pkl"
+
+
+def record(path: Path | None = None) -> dict[str, Any]:
     """C's cells and the stamps of RECORDED passes of the default's looped route."""
+    path = path or cache_path()
     if path.is_file():
         return pickle.loads(path.read_bytes())
     from neoslam_stream.sources.synthetic import SyntheticWorldSource

@@ -35,12 +35,14 @@ class Stream:
     cache: Path
     truth: dict[str, Any] = field(default_factory=dict)
 
-    def features(self) -> np.ndarray:
-        """A's features (EfficientNet-Lite0 unless AlexNet's weights are found), 8 frames at a time."""
-        path = self.cache / f"{self.name}_features.npy"
+    def features(self, photometric: str = "none") -> np.ndarray:
+        """A's features (the default's backbone: EfficientNet-Lite0 unless AlexNet's weights are
+        found; ``photometric`` as given), 8 frames at a time."""
+        tag = "" if photometric == "none" else f"_{photometric}"
+        path = self.cache / f"{self.name}{tag}_features.npy"
         if path.exists():
             return np.load(path)
-        fe = FrontEnd(load_config("default").front_end())
+        fe = FrontEnd(load_config("default", {"features": {"photometric": photometric}}).front_end())
         batch, out = [], []
         for img in self.frames():
             batch.append(img)
@@ -55,8 +57,9 @@ class Stream:
         return feats
 
     def cells(self, fe: FrontEnd) -> list[np.ndarray]:
-        """C's cells of every frame through ``fe``'s B (8 frames a batch, as its node) and C."""
-        feats = self.features()
+        """C's cells of every frame through ``fe``'s B (8 frames a batch, as its node) and C, from
+        A's features with ``fe``'s photometric setting."""
+        feats = self.features(fe.config.features.photometric)
         return [fe.cells(b) for k in range(0, len(feats), 8) for b in fe.bits(feats[k:k + 8])]
 
     def pixels(self) -> Iterator[np.ndarray]:

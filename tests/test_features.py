@@ -1,5 +1,6 @@
 """Stage A: stride, crop semantics, output shape, pre-ReLU output, weight loading."""
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -235,3 +236,39 @@ def test_warm_up_runs_every_batch_size_and_changes_no_feature(monkeypatch):
     eager.warm_up(3)
     assert called == []
 
+
+def test_log_standardisation_undoes_a_change_of_gain_and_gamma():
+    # a gain g and a gamma y map log I to y log I + y log g: standardising each frame's log
+    # intensity gives the same image for both (values chosen so that nothing clips or floors)
+    rng = np.random.default_rng(3)
+    img = rng.uniform(0.2, 0.8, (40, 50)).astype(np.float32)
+    other = (0.7 * img) ** 1.3
+    a, b = F.log_standardised(img), F.log_standardised(other)
+    np.testing.assert_allclose(a, b, rtol=0, atol=1e-5)
+    # its definition: log intensity at mean LOG_MEAN and spread LOG_SPREAD, per channel
+    rgb = np.stack([img, other, 0.5 * img], axis=2)
+    out = np.log(F.log_standardised(rgb).astype(np.float64))
+    assert out.max() < 0  # nothing reached 1, so nothing clipped
+    np.testing.assert_allclose(out.mean(axis=(0, 1)), [F.LOG_MEAN] * 3, atol=1e-5)
+    np.testing.assert_allclose(out.std(axis=(0, 1)), [F.LOG_SPREAD] * 3, atol=1e-5)
+
+
+def test_photometric_setting_reaches_the_backbone_input_only_when_asked():
+    fx = F.VisualFeatureExtractor(backbone="random_alexnet")
+    ls = F.VisualFeatureExtractor(backbone="random_alexnet", photometric="log_standardise")
+    img = np.random.default_rng(4).integers(30, 220, (120, 160, 3), dtype=np.uint8)
+    darker = ((img / 255.0 * 0.6) ** 1.2 * 255).round().astype(np.uint8)
+    plain, std = fx.preprocess(img), ls.preprocess(img)
+    as_captured = np.abs(fx.preprocess(darker) - plain).mean()  # the light shows
+    # standardised: the same input up to the darker frame's 8-bit rounding and the resize, which
+    # interpolates before the log is taken
+    assert np.abs(ls.preprocess(darker) - std).mean() < 0.1 * as_captured
+    # and the standardised grey image is what the backbone gets, after ImageNet's mean/std
+    grey = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+    g = cv2.resize(grey, (341, 256), interpolation=cv2.INTER_LINEAR)[16:240, 58:282].astype(np.float32) / 255
+    np.testing.assert_allclose(std[1], (F.log_standardised(g) - F.IMAGENET_MEAN[1]) / F.IMAGENET_STD[1], atol=1e-5)
+    # the shipped default standardises; the paper profile keeps the paper's input bit for bit
+    from neoslam_stream.config import load_config
+
+    assert load_config("default").features.photometric == "log_standardise"
+    assert load_config("paper").features.photometric == "none"

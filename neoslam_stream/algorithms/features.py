@@ -1,9 +1,10 @@
 """Stage A: visual features (NeoSLAM's visual feature extractor).
 
 Per camera frame: ``frame_stride`` selection, optional crop, colour mode, the ImageNet
-preprocessing of the reference (shorter side to 256, centre crop 224, mean/std), and a CNN layer
-(:mod:`.backbones`): ``alexnet`` (the paper's: conv3 before its ReLU, 384x13x13 = 64896 float32),
-``efficientnet_lite0`` (block 10, 112x14x14 = 21952, the map closest to conv3's 13x13; what
+preprocessing of the reference (shorter side to 256, centre crop 224, mean/std; with
+``photometric: log_standardise`` each frame's log intensity standardised before the mean/std),
+and a CNN layer (:mod:`.backbones`): ``alexnet`` (the paper's: conv3 before its ReLU, 384x13x13 =
+64896 float32), ``efficientnet_lite0`` (block 10, 112x14x14 = 21952, the map closest to conv3's 13x13; what
 ``backbone: auto`` runs without AlexNet's weights) or ``random_alexnet`` (seeded random weights,
 for tests and throughput benches only). Weight files and what "auto" means: :mod:`.weights`.
 On a CPU the backbone runs frozen (``inference``): the same features to float rounding, faster.
@@ -43,6 +44,25 @@ IMAGENET_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
 FEATURE_DIMS = {"alexnet": 384 * 13 * 13, "random_alexnet": 384 * 13 * 13, "efficientnet_lite0": 112 * 14 * 14}
 
 
+#: the log intensity a frame is brought to by ``photometric: log_standardise``: mean ln 0.5 (mid
+#: grey) and spread 0.25 (a pixel one spread away is 0.39 or 0.64; up to 2.8 spreads above the
+#: mean stay below 1, brighter pixels clip); set once, not tuned (docs/mapping.md)
+LOG_MEAN, LOG_SPREAD = float(np.log(0.5)), 0.25
+
+
+def log_standardised(img: np.ndarray) -> np.ndarray:
+    """HxW or HxWxC float32 in [0, 1] -> the same with each channel's log intensity at mean
+    ``LOG_MEAN`` and standard deviation ``LOG_SPREAD`` (values above 1 clipped). A gain g and
+    gamma y map log I to y log I + y log g, an affine map that the standardisation removes (up to
+    clipping, and the floor of 1/255 that keeps the log of a black pixel finite)."""
+    lg = np.log(np.maximum(img, np.float32(1 / 255)))
+    mean = lg.mean(axis=(0, 1), dtype=np.float64)
+    sd = lg.std(axis=(0, 1), dtype=np.float64)
+    scale = (LOG_SPREAD / np.maximum(sd, 1e-6)).astype(np.float32)
+    out = np.exp((lg - mean.astype(np.float32)) * scale + np.float32(LOG_MEAN))
+    return np.minimum(out, np.float32(1.0), out=out)
+
+
 class FeatureConfig(BaseModel):
     """Stage A parameters (names as in the ROS 2 NeoSLAM where it has them)."""
 
@@ -58,6 +78,11 @@ class FeatureConfig(BaseModel):
     y_min: int = Field(0, ge=0)
     y_max: int | None = None
     colour: Literal["grey", "rgb"] = "grey"
+    #: ``log_standardise``: each frame's log intensity (per channel) brought to one mean and
+    #: spread before the backbone (:func:`log_standardised`): a change of exposure (a gain) or of
+    #: the camera's response curve (a gamma) is an affine change of log intensity, which this
+    #: undoes, so a place seen again under other light gives the backbone the same image
+    photometric: Literal["none", "log_standardise"] = "none"
     #: torch device of the backbone: auto (cuda when torch sees a GPU), cpu, cuda or cuda:N
     device: str = Field("auto", pattern=r"^(cpu|auto|cuda(:[0-9]+)?)$")
     threads: int = Field(1, ge=1)
@@ -187,6 +212,8 @@ class VisualFeatureExtractor:
         img = cv2.resize(np.ascontiguousarray(img), (nw, nh), interpolation=cv2.INTER_LINEAR)
         top, left = (nh - 224) // 2, (nw - 224) // 2
         img = img[top:top + 224, left:left + 224].astype(np.float32) / 255.0
+        if self.config.photometric == "log_standardise":
+            img = log_standardised(img)
         if grey:
             out = np.empty((3, 224, 224), np.float32)
             for c in range(3):

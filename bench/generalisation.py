@@ -7,7 +7,8 @@ rho) are chosen on validation parts by ``CHOICE_RULE``, A's light setting (``fea
 by ``LIGHT_RULE``, and both are reported on held-out parts; the validation and test parts are
 disjoint (``PARTS``). Front-end figures: loop-closure precision and recall through the real
 A -> B -> C -> D (docs/mapping.md defines them per data set); the synthetic route also runs the
-back end (trajectory errors), and the TUC corridor the back end alone. Writes bench/results/generalisation.json; ``--table`` prints the README's table.
+back end (trajectory errors), and the TUC corridor the back end alone. Writes
+bench/results/generalisation.json; ``--table`` prints the README's table.
 Run: ``.venv/bin/python bench/generalisation.py [--only light,choice,nordland,synthetic,proxies,tuc,route,route2]
 [--table]``.
 """
@@ -112,6 +113,13 @@ def part_stream(part: str) -> Stream:
 
 
 # ------------------------------------------------------------------------------ choice and report
+def _judge(row: dict[str, Any], parts: list[str]) -> None:
+    """A candidate's verdict on the validation parts: whether its precision reaches BARS on every
+    one (``reaches_bars``) and its mean recall over them (``mean_recall``)."""
+    row["reaches_bars"] = all((row[p]["precision"] or 0) >= BARS[p.split(":")[0]] for p in parts)
+    row["mean_recall"] = float(np.mean([row[p]["recall"] for p in parts]))
+
+
 def choose(valid: dict[str, dict[str, Any]]) -> dict[str, Any]:
     """The grid on the validation parts (the default's cells, D once per grid point) and the
     point ``CHOICE_RULE`` picks."""
@@ -122,11 +130,9 @@ def choose(valid: dict[str, dict[str, Any]]) -> dict[str, Any]:
             row[part] = frontend_figures(stream, default_config(stream.platform, enabled=True, z_min=z, rho=rho),
                                          cells)
             row[part].pop("calibration", None)
-        ok = all((row[p]["precision"] or 0) >= BARS[p.split(":")[0]] for p in valid)
-        row["reaches_bars"] = ok
-        row["mean_recall"] = float(np.mean([row[p]["recall"] for p in valid]))
+        _judge(row, list(valid))
         grid.append(row)
-        print("grid", z, rho, ok, round(row["mean_recall"], 3), flush=True)
+        print("grid", z, rho, row["reaches_bars"], round(row["mean_recall"], 3), flush=True)
     feasible = [g for g in grid if g["reaches_bars"]]
     best = None
     if feasible:
@@ -149,15 +155,14 @@ def choose_light(parts: list[str]) -> dict[str, Any]:
     """Each photometric setting of A's input through the default front end (its calibrated decision
     as shipped) on the validation parts, and the setting ``LIGHT_RULE`` picks."""
     rows = []
+    streams = {part: part_stream(part) for part in parts}
     for light in LIGHT:
         row: dict[str, Any] = {"photometric": light}
-        for part in parts:
-            stream = part_stream(part)
+        for part, stream in streams.items():
             cfg = load_config("default", {"platform": stream.platform, "features": {"photometric": light}})
             row[part] = frontend_figures(stream, cfg)
             row[part].pop("calibration", None)
-        row["reaches_bars"] = all((row[p]["precision"] or 0) >= BARS[p.split(":")[0]] for p in parts)
-        row["mean_recall"] = float(np.mean([row[p]["recall"] for p in parts]))
+        _judge(row, parts)
         rows.append(row)
         print("light", light, row["reaches_bars"], round(row["mean_recall"], 3), flush=True)
     feasible = [r for r in rows if r["reaches_bars"]]

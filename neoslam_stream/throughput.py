@@ -141,15 +141,13 @@ def rate_sweep(config: str | None, rates: list[float], duration: float, topologi
 
 
 def image_capacity(cfg: Any, topology: str) -> int:
-    """The frames A's image ring holds in this run: ``bus.capacity.image`` when set, else the
-    plan's (a batch before the batching stage A) for the pipeline, ``bus.default_capacity`` for the
-    monolithic process (runtime/topology.py)."""
+    """The frames A's image ring holds in this run, by the supervisor's rule
+    (runtime/topology.py ``queue_capacities``)."""
     from .nodes.pipelines import build_plan
+    from .runtime.topology import queue_capacities
 
-    if "image" in cfg.bus.capacity:
-        return int(cfg.bus.capacity["image"])
-    plan = build_plan(cfg).capacity if topology == "pipeline" else {}
-    return int(plan.get("image", cfg.bus.default_capacity))
+    caps = queue_capacities(build_plan(cfg), cfg.bus.capacity, topology == "monolithic")
+    return int(caps.get("image", cfg.bus.default_capacity))
 
 
 def _scaling_rows(stats_path: Path, step: int) -> list[dict[str, Any]]:

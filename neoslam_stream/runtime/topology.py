@@ -48,6 +48,17 @@ CONTROL_TOKEN_ENV = "NEOSLAM_CONTROL_TOKEN"
 log = logging.getLogger("neoslam.topology")
 
 
+def queue_capacities(plan: PipelinePlan, configured: dict[str, int], monolithic: bool) -> dict[str, int]:
+    """Input queue capacity per topic before a worker's own nodes raise it: the plan's, overridden
+    by ``bus.capacity`` (``configured``). The monolithic process takes the source's topics at
+    ``bus.default_capacity`` unless configured: the original design keeps the newest frames, not a
+    batch."""
+    caps = plan.capacity
+    if monolithic:
+        caps = {t: c for t, c in caps.items() if t not in plan.consumed_source_topics}
+    return {**caps, **configured}
+
+
 class Supervisor(ChildProcesses):
     """Runs ``plan`` with the runtime sections of ``cfg`` (``run``, ``bus``, ``source``);
     ``source_factory``: the ``"module:callable"`` that builds ``cfg.source``'s source (``launch``
@@ -122,10 +133,7 @@ class Supervisor(ChildProcesses):
         specs = self.groups[wname]
         listen, connect = self._links(wname)
         connect += [e for s in specs for e in s.connect if e not in connect]
-        plan_caps = self.plan.capacity
-        if wname == "monolithic":  # the original design keeps the newest frames, not a batch
-            plan_caps = {t: c for t, c in plan_caps.items() if t not in self.plan.consumed_source_topics}
-        caps = {**plan_caps, **self.cfg.bus.capacity}
+        caps = queue_capacities(self.plan, self.cfg.bus.capacity, wname == "monolithic")
         for s in specs:  # what a node needs at least (the recorder must not lose rows)
             for t, c in s.capacity.items():
                 caps[t] = max(c, caps.get(t, self.cfg.bus.default_capacity))

@@ -82,8 +82,8 @@ def test_the_plan_gives_every_process_its_topics_capacities_and_source(tmp_path)
     assert sup.source_spec().final_topic == "experience_map/pose"
     # the back end's actions queue deep unless bus.capacity names them
     assert sup.worker_spec("experience_map").capacities["pose_cells/action"] == 256
-    # before and after a batching stage (A, B) a ring holds a whole batch of run.max_batch frames;
-    # after C, which takes one frame at a time, the default ring
+    # before and after a batching stage (A, B) a ring holds a whole batch of run.max_batch frames,
+    # and after C, which turns B's batch into a burst of as many SDRs
     # the image ring before A: a batch in a real-time run, the default queue in a lossless one
     assert sup.worker_spec("A").capacities.get("image", cfg.bus.default_capacity) == cfg.bus.default_capacity
     live = load_config("default", {"run": {"live": False, "mode": "realtime"}})
@@ -91,10 +91,11 @@ def test_the_plan_gives_every_process_its_topics_capacities_and_source(tmp_path)
         live.run.max_batch
     assert sup.worker_spec("B").capacities["visual_features"] == cfg.run.max_batch
     assert sup.worker_spec("C").capacities["bin_features"] == cfg.run.max_batch
-    assert sup.worker_spec("D").capacities.get("sdr", cfg.bus.default_capacity) == cfg.bus.default_capacity
+    assert sup.worker_spec("D").capacities["sdr"] == cfg.run.max_batch
     one = load_config("default", {"run": {"live": False, "max_batch": 1}, "bus": {"capacity": {"bin_features": 3}}})
     sup1 = Supervisor(one, build_plan(one), tmp_path / "one")
     assert sup1.worker_spec("B").capacities["visual_features"] == one.bus.default_capacity  # no batch: 2
+    assert sup1.worker_spec("D").capacities["sdr"] == one.bus.default_capacity
     assert sup1.worker_spec("C").capacities["bin_features"] == 3  # bus.capacity names it: it wins
     # the monolithic process keeps the newest frames (the original design), not a batch, unless
     # bus.capacity names the image ring

@@ -16,6 +16,7 @@ from .topics import (
     BIN_FEATURES,
     EXPERIENCE_POSE,
     POSE_CELL_ACTION,
+    SDR,
     VISUAL_FEATURES,
     VISUAL_TEMPLATE,
 )
@@ -50,20 +51,22 @@ def _backend_plan(specs: list[NodeSpec], entry_stages: list[str], source_topics:
 
 
 def batch_capacity(cfg: Any) -> dict[str, int]:
-    """The rings after the batching stages (A, B), and in a real-time run the image ring before A,
-    hold a whole batch unless ``bus.capacity`` names them. After A and B: a stage that fell behind
-    takes up to ``run.max_batch`` frames at once and publishes them together, and a ring of two
-    behind it would evict one of the burst whenever the next stage is busy, losing a frame that
-    the stages before had already paid for. Before A, in real time: a frame that arrives while A is
-    busy waits instead of being evicted, and A, once free, takes the waiting frames as one batch;
-    a frame is lost only when A is ``run.max_batch`` periods late, not two. When nothing falls
-    behind these rings hold nothing and add no latency; where A cannot keep up at all, a frame
-    waits up to ``run.max_batch`` periods before it (``bus.capacity: {image: 2}`` keeps the
-    freshest frames instead). A lossless run loses nothing by waiting, and its image queue of two
-    keeps A's batches at two, which cost less per frame than eight on a small CPU
-    (docs/runtime.md)."""
+    """The rings along the front end's path hold a whole batch unless ``bus.capacity`` names them:
+    after A, B and C always, and in a real-time run the image ring before A too. After A and B: a
+    stage that fell behind takes up to ``run.max_batch`` frames at once and publishes them
+    together, and a ring of two behind it would evict one of the burst whenever the next stage is
+    busy, losing a frame that the stages before had already paid for. After C: C turns B's burst
+    into as many SDRs within a few milliseconds, and D, cheap as it is, loses its share of two cores
+    for that long (a ring of two there evicted as many frames as A's at 60 FPS). Before A, in real
+    time: a frame that arrives while A is busy waits instead of being evicted, and A, once free,
+    takes the waiting frames as one batch; a frame is lost only when A is ``run.max_batch`` periods
+    late, not two. When nothing falls behind these rings hold nothing and add no latency; where A
+    cannot keep up at all, a frame waits up to ``run.max_batch`` periods before it
+    (``bus.capacity: {image: 2}`` keeps the freshest frames instead). A lossless run loses nothing
+    by waiting, and its image queue of two keeps A's batches at two, which cost less per frame than
+    eight on a small CPU (docs/runtime.md)."""
     depth = max(cfg.bus.default_capacity, cfg.run.max_batch)
-    out = {str(VISUAL_FEATURES): depth, str(BIN_FEATURES): depth}
+    out = {str(VISUAL_FEATURES): depth, str(BIN_FEATURES): depth, str(SDR): depth}
     if cfg.run.mode == "realtime":
         out["image"] = depth
     return out
@@ -222,7 +225,7 @@ def build_compare(cfg: Any) -> PipelinePlan:
     rs = build_ratslam(cfg)
     paper = paper_branch(cfg, plan)
     plan.stages += paper
-    # the paper branch's own rings after A and B (its A reads the run's image ring)
+    # the paper branch's own rings after A, B and C (its A reads the run's image ring)
     plan.capacity.update({f"{PAPER_DIR}/{t}": c for t, c in batch_capacity(cfg).items() if t != "image"})
     plan.stages += _branch(rs.stages, "rs_", {t: f"ratslam/{t}" for t in RATSLAM_BRANCH_TOPICS}, "ratslam")
     return plan

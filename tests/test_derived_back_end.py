@@ -16,7 +16,8 @@ def test_synthetic_world_a_ring_in_a_small_area():
     pc, em = s["pose_cells"], s["experience_map"]
     assert pc["pc_dim_xy"] == 21 and pc["exp_delta_pc_threshold"] == 2.0
     assert math.isclose(pc["pc_cell_x_size"], 0.3)
-    assert pc["odometry_bias"] == {"enabled": True, "samples_from": "templates", "bidirectional": False}
+    assert pc["odometry_bias"] == {"enabled": True, "samples_from": "templates", "forget_s": 5.0,
+                                   "bidirectional": False}
     assert pc["odometry_gate"]["radius_m"] == 0.0
     assert em == {"relaxation": "least_squares", "exp_initial_em_deg": 0.0}
 

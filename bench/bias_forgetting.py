@@ -87,22 +87,19 @@ def replay(rows: list[tuple], forget_s: float) -> dict[str, float]:
         gt.append(xy)
     em = be.experience_map
     loc = np.array(local)
-    nodes = {em.ids[k]: (em.x[k], em.y[k], em.th[k]) for k in range(em.n_experiences)}
-    on_map = poses_on_map(nodes, loc[:, 0].astype(np.int64), loc[:, 1:])[:, :2]
+    on_map = poses_on_map(em.node_poses(), loc[:, 0].astype(np.int64), loc[:, 1:])[:, :2]
     ref = np.array(gt)
     return {"online_m": ape(np.array(online), ref)["mean_m"], "final_map_m": ape(on_map, ref)["mean_m"],
             "bias_rad_s": be.pose_cells.bias.bias, "bias_samples": be.pose_cells.bias.samples}
 
 
 def tuc_half(half: str, forget_s: float) -> dict[str, float]:
-    from bench_settings import back_end_sections, load_settings
-    from tuc_corridor import halfway_s, run
+    from bench_settings import back_end_sections
+    from tuc_corridor import run_half
 
     pose_cells, em = back_end_sections("tuc")
     pose_cells = {**pose_cells, "odometry_bias": {**pose_cells["odometry_bias"], "forget_s": forget_s}}
-    proto = load_settings("tuc")["protocol"]
-    kw = {"limit_s": halfway_s()} if half == "first" else {"start_s": halfway_s()}
-    r = run(pose_cells, em, proto["threshold"], proto["min_gap_s"], **kw)
+    r = run_half(half, pose_cells, em)
     return {"online_m": r["map_mean_m"], "final_map_m": r["map_on_final_mean_m"], "odometry_m": r["odometry_mean_m"]}
 
 

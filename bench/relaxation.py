@@ -68,8 +68,7 @@ def replay(inp: dict[str, Any], **relaxation: Any) -> dict[str, float]:
             local.append(em.local_pose())
     secs = time.perf_counter() - t0
     loc = np.array(local)
-    nodes = {em.ids[k]: (em.x[k], em.y[k], em.th[k]) for k in range(em.n_experiences)}
-    on_map = poses_on_map(nodes, loc[:, 0].astype(np.int64), loc[:, 1:])[:, :2]
+    on_map = poses_on_map(em.node_poses(), loc[:, 0].astype(np.int64), loc[:, 1:])[:, :2]
     return {"online_m": ape(np.array(poses), inp["gt"])["mean_m"], "final_map_m": ape(on_map, inp["gt"])["mean_m"],
             "map_seconds": secs, "experiences": em.n_experiences, "links": em.n_links}
 
@@ -80,18 +79,16 @@ def variants() -> list[tuple[str, dict[str, Any]]]:
 
 
 def tuc_halves() -> dict[str, dict[str, Any]]:
-    from bench_settings import back_end_sections, load_settings
-    from tuc_corridor import halfway_s, run
+    from bench_settings import back_end_sections
+    from tuc_corridor import run_half
 
-    half = halfway_s()
     pose_cells, em = back_end_sections("tuc")
-    proto = load_settings("tuc")["protocol"]
     out: dict[str, dict[str, Any]] = {}
-    for part, kw in (("tuc:first", {"limit_s": half}), ("tuc:second", {"start_s": half})):
+    for part in ("tuc:first", "tuc:second"):
         out[part] = {}
         for name, over in variants():
             t0 = time.perf_counter()
-            r = run(pose_cells, {**em, **over}, proto["threshold"], proto["min_gap_s"], **kw)
+            r = run_half(part.split(":")[1], pose_cells, {**em, **over})
             out[part][name] = {"online_m": r["map_mean_m"], "final_map_m": r["map_on_final_mean_m"],
                                "odometry_m": r["odometry_mean_m"], "run_seconds": time.perf_counter() - t0,
                                "experiences": r["experiences"], "links": r["links"]}

@@ -14,10 +14,11 @@ tests/test_ratslam_tuc.py.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
-from bench_settings import data_root
+from bench_settings import data_root, load_settings
 
 from neoslam_stream.algorithms.backend import PoseCellStage, integrate
 from neoslam_stream.algorithms.ratslam.experience_map import ExperienceMap, poses_on_map
@@ -69,11 +70,23 @@ def load(limit_s: float | None = None, start_s: float | None = None):
     return odom, loops, gt
 
 
+@functools.lru_cache(maxsize=1)
 def halfway_s() -> float:
     """The middle of the recording's time span: the back end's constants were chosen on the run up
     to it, and the run from it on is the held-out half."""
     odom = load()[0]
     return float(odom[0, 0] + odom[-1, 0]) / 2
+
+
+def run_half(half: str, pose_cells: dict, experience_map: dict) -> dict:
+    """:func:`run` on one half of the recording alone, under bench/settings/tuc.yaml's protocol:
+    ``first`` (up to :func:`halfway_s`, the half on which the back end's constants are chosen) or
+    ``second`` (from it on, held out)."""
+    if half not in ("first", "second"):
+        raise ValueError(f"half must be 'first' or 'second', got {half!r}")
+    proto = load_settings("tuc")["protocol"]
+    part = {"limit_s": halfway_s()} if half == "first" else {"start_s": halfway_s()}
+    return run(pose_cells, experience_map, proto["threshold"], proto["min_gap_s"], **part)
 
 
 def templates_from_loops(loops: np.ndarray, threshold: float, min_gap_s: float,
@@ -161,9 +174,8 @@ def run(pose_cells: dict, experience_map: dict, threshold: float = 0.8, min_gap_
     ref = gt[idx, 1:3]
     err_map = np.linalg.norm(align_rigid_2d(est[:, 1:], ref) - ref, axis=1)
     err_odo = np.linalg.norm(align_rigid_2d(dr[:, 1:], ref) - ref, axis=1)
-    nodes = {em.ids[k]: (em.x[k], em.y[k], em.th[k]) for k in range(em.n_experiences)}
     loc = np.array(local, dtype=np.float64).reshape(-1, 4)
-    on_map = poses_on_map(nodes, loc[:, 0].astype(np.int64), loc[:, 1:])[:, :2]
+    on_map = poses_on_map(em.node_poses(), loc[:, 0].astype(np.int64), loc[:, 1:])[:, :2]
     err_on_map = np.linalg.norm(align_rigid_2d(on_map, ref) - ref, axis=1)
     bias = stage.bias
     return {"steps": len(odom), "frames": len(frame_times), "templates": len(set(ids.values())),

@@ -165,7 +165,8 @@ def test_local_pose_re_expressed_on_the_unchanged_map_is_the_robot_pose():
     em.on_odo(0.7, -0.9, 1.0)
     em.on_odo(0.2, 0.3, 2.0)
     exp_id, *local = em.local_pose()
-    nodes = {em.ids[i]: (em.x[i], em.y[i], em.th[i]) for i in range(em.n_experiences)}
+    nodes = em.node_poses()  # every experience's pose now, as the exported map gives it
+    assert nodes == {n["id"]: (n["x"], n["y"], n["theta"]) for n in em.export()["nodes"]} and len(nodes) == 2
     (x, y, th), = poses_on_map(nodes, np.array([exp_id]), np.array([local]))
     assert (x, y, th) == pytest.approx(em.robot_pose(), abs=1e-12)
 

@@ -80,3 +80,5 @@ def test_a_run_from_the_middle_sees_nothing_earlier():
     assert 0 < len(odom) < len(odom_all) and odom[0, 0] >= half and gt[:, 0].min() >= half
     assert len(loops) > 0 and loops[:, :2].min() >= half
     assert len(odom) + len(tuc.load(limit_s=half)[0]) >= len(odom_all)  # the halves cover the run
+    with pytest.raises(ValueError, match="half must be 'first' or 'second'"):
+        tuc.run_half("third", {}, {})

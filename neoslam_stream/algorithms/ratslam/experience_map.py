@@ -361,6 +361,11 @@ class ExperienceMap:
         return (self.ids[self._cur], c * self.accum_dx + s * self.accum_dy, -s * self.accum_dx + c * self.accum_dy,
                 clip_pi(self.accum_facing - th))
 
+    def node_poses(self) -> dict[int, tuple[float, float, float]]:
+        """Every experience's pose on the map now, id -> (x, y, theta): what :func:`poses_on_map`
+        re-expresses the recorded :meth:`local_pose` rows on (the final map, once the run ends)."""
+        return {i: (x, y, th) for i, (x, y, th) in zip(self.ids, self._nodes[: self._n, :3].tolist(), strict=True)}
+
     @staticmethod
     def warm_up() -> None:
         """Compile (or load from numba's cache) the relaxation kernel before the first frame."""

@@ -148,12 +148,15 @@ def test_malformed_payload_is_counted_and_skipped(tmp_path):
         session.put(key, encode(Message("control", 0, 0.0, {"command": "noop"})))  # wrong type for a stage
         session.put(key, encode(Message("image", 10**6, 0.0, {"image": np.zeros((2, 2, 2, 2), np.uint8)}),
                                 validate=False))  # wrong shape
-        # a type no process of the run registered: refused, never passed on unchecked
+        # a type no process of the run registered: refused, never passed on unchecked. Put once
+        # stage2 is up (its first stats follow its subscriptions): the workers start in parallel,
+        # and a sample put before stage2 subscribed reaches nobody
+        _wait_stats(session, run_id, "stage2")
         unregistered = encode(Message("nobody_registered", 7, 0.0, {"x": 1}), validate=False)
-        for _ in range(3):  # until stage2 says it refused it (a sample can be lost on the way)
+        for _ in range(5):  # until stage2 says it refused it (a sample can be lost on the way)
             session.put(key_for(run_id, "emulated/1"), unregistered)
             try:
-                _wait_stats(session, run_id, "stage2", timeout=10.0,
+                _wait_stats(session, run_id, "stage2", timeout=2.0,
                             until=lambda d: any("nobody_registered" in c for c in d.get("error_causes", {})))
                 break
             except AssertionError:

@@ -5,6 +5,9 @@ BIN := $(VENV)/bin
 # The CPU build of torch lies on this disk; an unpinned torch pulls a multi-GB CUDA build.
 TORCH_PIN := torch==2.13.0
 STAMP := $(VENV)/.installed
+# pytest workers: most tests wait on processes they started, so two share two cores well; a
+# module's tests stay on one worker (--dist loadscope), as they share its fixtures' runs
+TEST_WORKERS ?= 2
 
 .PHONY: setup run test lint bench clean
 
@@ -24,7 +27,7 @@ run: setup
 
 test: setup
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest -q $(PYTEST_ARGS)
+	$(BIN)/python -m pytest -q -n $(TEST_WORKERS) --dist loadscope $(PYTEST_ARGS)
 
 lint: setup
 	$(BIN)/ruff check .

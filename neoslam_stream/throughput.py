@@ -72,7 +72,8 @@ def summarise(report: dict[str, Any], topology: str, rate: float, duration: floa
             "predicted_loss": report["predicted_loss"],
             "latency_p50_ms": report["latency_p50_ms"], "latency_p95_ms": report["latency_p95_ms"],
             "errors": report["errors"], "restarts": report.get("restarts", {}),
-            "backbone": a_info.get("backbone"), "backbone_is_random": a_info.get("backbone_is_random")}
+            "backbone": a_info.get("backbone"), "backbone_is_random": a_info.get("backbone_is_random"),
+            "host": report.get("host")}  # what the hypervisor took over the run: a slow hour shows
 
 
 def paper_table(runs: list[dict[str, Any]]) -> str:
@@ -136,8 +137,14 @@ def rate_sweep(config: str | None, rates: list[float], duration: float, topologi
         if progress:
             print(f"      processed {row['frames_processed']} of {row['frames_in']}, loss {100 * row['loss']:.2f} %, "
                   f"bottleneck {row['bottleneck']} ({row['bottleneck_tau_ms']:.1f} ms), "
-                  f"latency p50 {row['latency_p50_ms']:.0f} ms", flush=True)
+                  f"latency p50 {row['latency_p50_ms']:.0f} ms{_steal_note(row)}", flush=True)
     return runs
+
+
+def _steal_note(row: dict[str, Any]) -> str:
+    """", the hypervisor took 12.3 s of CPU" when it took any over the run (a shared machine)."""
+    steal = (row.get("host") or {}).get("steal_s")
+    return f", the hypervisor took {steal:.1f} s of CPU" if steal else ""
 
 
 def image_capacity(cfg: Any, topology: str) -> int:

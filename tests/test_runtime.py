@@ -50,6 +50,8 @@ def test_emulated_paper_example(tmp_path, topology):
     assert report["bottleneck"] == bottleneck
     for key in ("frames_in", "frames_out", "latency_p50_ms", "stages"):
         assert key in report
+    # what the host did over the run: the CPU seconds the hypervisor took, from /proc/stat
+    assert report["host"]["cpus"] == os.cpu_count() and report["host"]["steal_s"] >= 0
     assert (tmp_path / "timeline.csv").read_text().startswith("t_s,stage")
 
 

@@ -79,6 +79,7 @@ def test_smoke_run_writes_throughput_json(tmp_path, capsys):
 
     assert r["backbone"] == resolve_backbone(load_config("default").features) != "random_alexnet"
     assert r["backbone_is_random"] is False
+    assert r["host"]["steal_s"] >= 0  # each row says what the hypervisor took over its run
     assert "Processed Frames" in res["paper_table"]
     sc = res["scaling"]
     assert sc["frames"] == 150 and sc["loss"] == 0.0  # lossless

@@ -33,6 +33,7 @@ from .bus import ZENOH_CONFIG_ENV, ZENOH_TX_QUEUE_ENV, free_port, key_for, open_
 from .checkpoint import cut_dir, latest_complete_cut
 from .children import ChildProcesses
 from .collector import FinalTracker, StatsCollector
+from .host import host_usage, sample_host
 from .messages import register_topics
 from .monitor import MonitorSpec
 from .plan import PipelinePlan, RunError, RunResult, group_workers, make_run_dir
@@ -213,6 +214,7 @@ class Supervisor(ChildProcesses):
 
     # ------------------------------------------------------------------ the run
     def run(self) -> RunResult:
+        self.host_start = sample_host()  # the host's own figures over the run (report.json's host)
         (self.run_dir / "config.yaml").write_text(yaml.safe_dump(self.cfg.model_dump(mode="json"),
                                                                  sort_keys=False))
         old_int = signal.signal(signal.SIGINT, self._on_signal)
@@ -354,6 +356,8 @@ class Supervisor(ChildProcesses):
         mark_status(report, getattr(self, "failure", None), interrupted, self.source_failure)
         report["run_dir"] = str(self.run_dir)
         report["workers"] = {w: [s.name for s in specs] for w, specs in self.groups.items()}
+        start = getattr(self, "host_start", None)
+        report["host"] = host_usage(start, sample_host()) if start is not None else None
         write_report(path, report)
         return report
 

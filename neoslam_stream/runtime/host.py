@@ -40,6 +40,7 @@ class HostSample:
 
 
 def sample_host(stat_path: str | Path = "/proc/stat") -> HostSample:
+    """The host now; a figure the platform cannot give is None (never an error)."""
     try:
         steal = steal_ticks(Path(stat_path).read_text())
     except (OSError, ValueError):

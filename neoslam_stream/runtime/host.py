@@ -2,8 +2,10 @@
 
 A stage's service time tau_i on a shared virtual machine moves by the hour: the hypervisor takes
 CPU time from the guest (steal) and other software loads the cores. A report that says how much
-was taken lets a reader tell a slow stage from a slow machine, and compare runs of different hours
-only when their hosts agree. Linux's /proc/stat and load average; elsewhere the figures are null.
+was taken shows those two causes of a slow run; a core that is slower for the same CPU time (its
+clock, caches or a physical core shared with other guests) does not show here, so a figure of one
+hour is compared with another's only with that said. Linux's /proc/stat and load average;
+elsewhere the figures are null.
 """
 
 from __future__ import annotations

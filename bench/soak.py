@@ -29,6 +29,7 @@ import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from neoslam_stream.runtime.host import steal_ticks  # noqa: E402
 from neoslam_stream.throughput import rate_sweep, summarise  # noqa: E402
 
 
@@ -86,17 +87,18 @@ class StealLog(threading.Thread):
 
 
 def steal_by_row(log: Path, rows: list[dict]) -> None:
-    """Each row's ``steal_s``: the steal (8th value of the cpu line) since the previous row, the
-    counter read linearly between the log's samples; the log's first sample is the run's start, to
-    within a second (the run folder is made then)."""
+    """Each row's ``steal_s``: the steal (``steal_ticks`` of the logged cpu line) since the previous
+    row, the counter read linearly between the log's samples; the log's first sample is the run's
+    start, to within a second (the run folder is made then)."""
     if not log.exists():
         return
     tick = os.sysconf("SC_CLK_TCK")
     samples = []
     for line in log.read_text().splitlines():
-        parts = line.split()
-        if len(parts) > 9 and parts[1] == "cpu":
-            samples.append((float(parts[0]), int(parts[9]) / tick))
+        stamp, _, cpu_line = line.partition(" ")
+        ticks = steal_ticks(cpu_line)
+        if ticks is not None:
+            samples.append((float(stamp), ticks / tick))
     if len(samples) < 2:
         return
     t0 = samples[0][0]

@@ -356,8 +356,7 @@ class Supervisor(ChildProcesses):
         mark_status(report, getattr(self, "failure", None), interrupted, self.source_failure)
         report["run_dir"] = str(self.run_dir)
         report["workers"] = {w: [s.name for s in specs] for w, specs in self.groups.items()}
-        start = getattr(self, "host_start", None)
-        report["host"] = host_usage(start, sample_host()) if start is not None else None
+        report["host"] = host_usage(self.host_start, sample_host())  # run() sampled its start
         write_report(path, report)
         return report
 

@@ -3,14 +3,16 @@
 Each data set runs the single default (configs/default.yaml, with only the data set's physical
 quantities under ``platform``), the paper profile (configs/paper.yaml) and RatSLAM's local view
 with the default's calibrated decision, side by side. The calibrated decision's constants (z_min,
-rho) are chosen on validation parts by ``CHOICE_RULE``, A's light setting (``features.photometric``)
-by ``LIGHT_RULE``, and both are reported on held-out parts; the validation and test parts are
+rho) are chosen on validation parts by ``CHOICE_RULE`` at each of A's input sizes and the size by
+``INPUT_RULE``, A's light setting (``features.photometric``) by ``LIGHT_RULE``, and all are
+reported on held-out parts; the validation and test parts are
 disjoint (``PARTS``). Front-end figures: loop-closure precision and recall through the real
 A -> B -> C -> D (docs/mapping.md defines them per data set); the synthetic route also runs the
 back end (trajectory errors), and the TUC corridor the back end alone. Writes
 bench/results/generalisation.json; ``--table`` prints the README's table.
-Run: ``.venv/bin/python bench/generalisation.py [--only light,choice,nordland,synthetic,proxies,tuc,route,route2]
-[--table]``.
+Run: ``.venv/bin/python bench/generalisation.py [--only input,light,choice,nordland,synthetic,proxies,tuc,route,route2]
+[--jobs N] [--table]``; ``input`` runs the calibrated decision's grid at every input size and so
+includes ``choice``.
 """
 
 from __future__ import annotations
@@ -171,6 +173,51 @@ def choose_light(parts: list[str]) -> dict[str, Any]:
             "choice_is_the_default": best == load_config("default").features.photometric}
 
 
+#: sides of the square A sees (features.input_size), the reference's 224 first; chosen with the
+#: calibrated decision by INPUT_RULE on the validation parts, with the light setting as shipped
+INPUT_SIZES = [224, 192, 160, 128]
+INPUT_RULE = ("at each input size the grid point CHOICE_RULE picks; the smallest size whose pick's mean "
+              f"recall over the validation parts is at least the 224 pick's less {TIE}; its pick is the decision")
+
+
+def _grid_at(size: int, parts: list[str]) -> dict[str, Any]:
+    """CHOICE_RULE's grid on the validation parts with A's input at ``size``."""
+    valid = {}
+    for part in parts:
+        stream = part_stream(part)
+        cfg = load_config("default", {"platform": stream.platform, "features": {"input_size": size}})
+        valid[part] = (stream, stream.cells(FrontEnd(cfg.front_end())))
+    print("input", size, flush=True)
+    return choose(valid)
+
+
+def choose_input(parts: list[str], jobs: int = 1) -> dict[str, Any]:
+    """The grid of the calibrated decision at each input size of A, and the size and decision
+    ``INPUT_RULE`` picks: A's cost falls with the square of the side, and the smallest side whose
+    best decision keeps what the front end recognises at the reference's 224 wins. One choice over
+    both, so that neither depends on which was chosen first."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(max_workers=jobs) as pool:
+        grids = list(pool.map(_grid_at, INPUT_SIZES, [parts] * len(INPUT_SIZES)))
+    rows = []
+    for size, grid in zip(INPUT_SIZES, grids, strict=True):
+        pick = grid["choice"]
+        point = None if pick is None else next(g for g in grid["grid"]
+                                               if (g["z_min"], g["rho"]) == (pick["z_min"], pick["rho"]))
+        rows.append({"input_size": size, "pick": pick, "mean_recall": None if point is None else point["mean_recall"],
+                     "grid": grid})
+        print("input", size, pick, None if point is None else round(point["mean_recall"], 4), flush=True)
+    floor = None if rows[0]["mean_recall"] is None else rows[0]["mean_recall"] - TIE
+    keep = [r for r in rows if r["mean_recall"] is not None and floor is not None and r["mean_recall"] >= floor]
+    best = min(keep, key=lambda r: r["input_size"]) if keep else None
+    shipped = default_config()
+    choice = None if best is None else best["input_size"]
+    return {"rule": INPUT_RULE, "rows": [{k: v for k, v in r.items() if k != "grid"} for r in rows],
+            "choice": choice, "choice_is_the_default": choice == shipped.features.input_size,
+            "grids": {r["input_size"]: r["grid"] for r in rows}}
+
+
 def frontends(parts: list[str]) -> dict[str, Any]:
     """The three front ends on each held-out part."""
     out = {}
@@ -233,9 +280,10 @@ def route(seed: int = 0) -> dict[str, Any]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--only", default="light,choice,nordland,synthetic,proxies,tuc,route,route2")
+    ap.add_argument("--only", default="input,light,nordland,synthetic,proxies,tuc,route,route2")
     ap.add_argument("--out", default=str(RESULTS / "generalisation.json"))
     ap.add_argument("--table", action="store_true", help="print the README table from --out and stop")
+    ap.add_argument("--jobs", type=int, default=1, help="processes for the input sizes' grids")
     args = ap.parse_args()
     out_path = Path(args.out)
     res: dict[str, Any] = json.loads(out_path.read_text()) if out_path.exists() else {}
@@ -246,9 +294,17 @@ def main() -> None:
         return
     only = set(args.only.split(","))
     res["parts"] = PARTS
+    if "input" in only:
+        res["input"] = choose_input(PARTS["validation"], args.jobs)
+        size = res["input"]["choice"]
+        res["choice"] = res["input"].pop("grids")[size] if size is not None else None
+        if res["choice"] is not None:
+            shipped = default_config().spatial_view.calibration
+            res["choice"]["choice_is_the_default"] = res["choice"]["choice"] == {"z_min": shipped.z_min,
+                                                                               "rho": shipped.rho}
     if "light" in only:
         res["light"] = choose_light(PARTS["validation"])
-    if "choice" in only:
+    if "choice" in only and "input" not in only:
         valid = {}
         for part in PARTS["validation"]:
             stream = part_stream(part)

@@ -125,12 +125,15 @@ def spatial_view_runs(bits: list[np.ndarray], sdrs: list[np.ndarray], ids: list[
 
 @lru_cache(maxsize=1)
 def stream_features(backbone: str, step: int, limit: int | None = None, min_std: float | None = None,
-                    offset: int = 0, seed: int = 42) -> tuple[np.ndarray, tuple[int, ...], int, str]:
+                    offset: int = 0, seed: int = 42, photometric: str = "none",
+                    input_size: int = 224) -> tuple[np.ndarray, tuple[int, ...], int, str]:
     """A's features of the summer then winter frames (8 at a time, as its node batches them), the
     places' source frame numbers, the number of summer frames and the backbone that ran. The last
-    stream is kept (up to 0.2 GB): several B settings over one stream run A once."""
+    stream is kept (up to 0.2 GB): several B settings over one stream run A once. A's input as
+    captured at 224 unless ``photometric`` and ``input_size`` say otherwise (the default's)."""
     summer, winter, ids = load_frames(step, limit, min_std, offset)
-    fe = FrontEnd(features={"backbone": backbone, "seed": seed})
+    fe = FrontEnd(features={"backbone": backbone, "seed": seed, "photometric": photometric,
+                            "input_size": input_size})
     frames = summer + winter
     feats = np.concatenate([fe.features(frames[k:k + 8]) for k in range(0, len(frames), 8)])
     feats.setflags(write=False)

@@ -35,14 +35,15 @@ class Stream:
     cache: Path
     truth: dict[str, Any] = field(default_factory=dict)
 
-    def features(self, photometric: str = "none") -> np.ndarray:
+    def features(self, photometric: str = "none", input_size: int = 224) -> np.ndarray:
         """A's features (the default's backbone: EfficientNet-Lite0 unless AlexNet's weights are
-        found; ``photometric`` as given), 8 frames at a time."""
-        tag = "" if photometric == "none" else f"_{photometric}"
+        found; ``photometric`` and ``input_size`` as given), 8 frames at a time."""
+        tag = ("" if photometric == "none" else f"_{photometric}") + ("" if input_size == 224 else f"_{input_size}")
         path = self.cache / f"{self.name}{tag}_features.npy"
         if path.exists():
             return np.load(path)
-        fe = FrontEnd(load_config("default", {"features": {"photometric": photometric}}).front_end())
+        over = {"features": {"photometric": photometric, "input_size": input_size}}
+        fe = FrontEnd(load_config("default", over).front_end())
         batch, out = [], []
         for img in self.frames():
             batch.append(img)
@@ -58,8 +59,8 @@ class Stream:
 
     def cells(self, fe: FrontEnd) -> list[np.ndarray]:
         """C's cells of every frame through ``fe``'s B (8 frames a batch, as its node) and C, from
-        A's features with ``fe``'s photometric setting."""
-        feats = self.features(fe.config.features.photometric)
+        A's features with ``fe``'s photometric setting and input size."""
+        feats = self.features(fe.config.features.photometric, fe.config.features.input_size)
         return [fe.cells(b) for k in range(0, len(feats), 8) for b in fe.bits(feats[k:k + 8])]
 
     def pixels(self) -> Iterator[np.ndarray]:

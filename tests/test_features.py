@@ -72,19 +72,20 @@ def test_grey_mode_copies_grey_into_three_channels(rand_fx):
     np.testing.assert_allclose(raw[1], raw[2], atol=1e-6)
 
 
-def _preprocess_by_definition(rgb: np.ndarray, grey: bool) -> np.ndarray:
+def _preprocess_by_definition(rgb: np.ndarray, grey: bool, side: int = 256, crop: int = 224) -> np.ndarray:
     """The paper's preprocessing written out: grey copied into three channels, shorter side to 256
-    (bilinear), the centre 224 x 224, scaled to [0, 1] and normalised per channel, channels first."""
+    (bilinear), the centre 224 x 224, scaled to [0, 1] and normalised per channel, channels first
+    (``side`` and ``crop`` for another input size)."""
     import cv2
 
     img = rgb
     if grey:
         img = np.repeat(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)[:, :, None], 3, axis=2)
     h, w = img.shape[:2]
-    nh, nw = max(256, round(h * 256.0 / min(h, w))), max(256, round(w * 256.0 / min(h, w)))
+    nh, nw = max(side, round(h * side / min(h, w))), max(side, round(w * side / min(h, w)))
     img = cv2.resize(img, (nw, nh), interpolation=cv2.INTER_LINEAR)
-    top, left = (nh - 224) // 2, (nw - 224) // 2
-    img = img[top:top + 224, left:left + 224].astype(np.float32) / 255.0
+    top, left = (nh - crop) // 2, (nw - crop) // 2
+    img = img[top:top + crop, left:left + crop].astype(np.float32) / 255.0
     return np.ascontiguousarray(((img - F.IMAGENET_MEAN) / F.IMAGENET_STD).transpose(2, 0, 1))
 
 
@@ -99,6 +100,34 @@ def test_preprocessing_gives_the_definition_bit_for_bit(colour):
         got = fx.preprocess(img)
         assert got.shape == (3, 224, 224) and got.dtype == np.float32 and got.flags.c_contiguous
         assert np.array_equal(got, _preprocess_by_definition(img, colour == "grey")), (colour, h, w)
+
+
+@pytest.mark.parametrize(("size", "side"), [(160, 183), (192, 219), (128, 146)])
+def test_another_input_size_scales_the_resize_and_the_crop(size, side):
+    # input_size S: the shorter side to round(S * 256 / 224) (hand-computed here), the centre S x S
+    fx = F.VisualFeatureExtractor.__new__(F.VisualFeatureExtractor)
+    fx.config = F.FeatureConfig(input_size=size)
+    rng = np.random.default_rng(6)
+    for h, w in [(240, 416), (120, 160), (50, 60)]:
+        img = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+        got = fx.preprocess(img)
+        assert got.shape == (3, size, size)
+        assert np.array_equal(got, _preprocess_by_definition(img, True, side, size)), (size, h, w)
+
+
+@pytest.mark.parametrize("backbone", ["efficientnet_lite0", "random_alexnet"])
+@pytest.mark.parametrize("size", [224, 192, 160, 100])
+def test_feature_dim_is_what_the_network_gives(backbone, size):
+    # the formula's length equals the network's output on a frame of that size (AlexNet's 64896 and
+    # EfficientNet-Lite0's 21952 at 224); the extractor's frozen trace takes the same size
+    fx = F.VisualFeatureExtractor(backbone=backbone, device="cpu", input_size=size)
+    assert fx.output_dim == F.feature_dim(fx.backbone, size)
+    img = np.random.default_rng(size).integers(0, 256, (120, 160, 3), dtype=np.uint8)
+    assert fx.extract(img).shape == (fx.output_dim,)
+    with torch.no_grad():
+        assert fx.module(torch.zeros(1, 3, size, size)).numel() == fx.output_dim
+    if size == 224:
+        assert fx.output_dim == {"efficientnet_lite0": 112 * 14 * 14, "random_alexnet": 384 * 13 * 13}[backbone]
 
 
 def _torchvision_state(seed=0):

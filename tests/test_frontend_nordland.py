@@ -81,8 +81,9 @@ def test_the_default_reaches_the_precision_target():
 
     settings = load_settings("nordland")
     proto = settings["protocol"]
-    feats, ids, n, _ = stream_features("efficientnet_lite0", STEP, None, MIN_STD, 0, 42)
     cfg = load_config("default", {"platform": settings["platform"]})
+    a = cfg.features  # the default's A: its light setting and input size
+    feats, ids, n, _ = stream_features("efficientnet_lite0", STEP, None, MIN_STD, 0, 42, a.photometric, a.input_size)
     assert cfg.spatial_view.calibration.enabled and cfg.spatial_view.theta_sigma == 470  # unused when calibrated
     fe = FrontEnd(cfg.front_end())
     cells = [fe.cells(b) for k in range(0, len(feats), 8) for b in fe.bits(feats[k:k + 8])]

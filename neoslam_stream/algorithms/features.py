@@ -1,7 +1,8 @@
 """Stage A: visual features (NeoSLAM's visual feature extractor).
 
 Per camera frame: ``frame_stride`` selection, optional crop, colour mode, the ImageNet
-preprocessing of the reference (shorter side to 256, centre crop 224, mean/std; with
+preprocessing of the reference (shorter side to 256, centre crop 224, mean/std; ``input_size``
+scales both; with
 ``photometric: log_standardise`` each frame's log intensity standardised before the mean/std),
 and a CNN layer (:mod:`.backbones`): ``alexnet`` (the paper's: conv3 before its ReLU, 384x13x13 =
 64896 float32), ``efficientnet_lite0`` (block 10, 112x14x14 = 21952, the map closest to conv3's 13x13; what
@@ -41,7 +42,25 @@ log = logging.getLogger(__name__)
 
 IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
-FEATURE_DIMS = {"alexnet": 384 * 13 * 13, "random_alexnet": 384 * 13 * 13, "efficientnet_lite0": 112 * 14 * 14}
+
+
+def feature_dim(backbone: str, input_size: int = 224) -> int:
+    """Length of A's feature vector for a square input of ``input_size`` pixels: AlexNet's conv3
+    (384 channels; conv1 of kernel 11, stride 4, padding 2, then two 3x3 max pools of stride 2:
+    13x13 at 224) or EfficientNet-Lite0's block 10 (112 channels; four stride-2 convolutions
+    padded to keep ceil(n/2): 14x14 at 224)."""
+    if backbone in ("alexnet", "random_alexnet"):
+        n = (input_size + 4 - 11) // 4 + 1
+        for _ in range(2):
+            n = (n - 3) // 2 + 1
+        return 384 * n * n
+    if backbone == "efficientnet_lite0":
+        n = input_size
+        for _ in range(4):
+            n = -(-n // 2)
+        return 112 * n * n
+    raise ValueError(f"unknown backbone {backbone!r}")
+
 
 
 #: the log intensity a frame is brought to by ``photometric: log_standardise``: mean ln 0.5 (mid
@@ -78,6 +97,11 @@ class FeatureConfig(BaseModel):
     y_min: int = Field(0, ge=0)
     y_max: int | None = None
     colour: Literal["grey", "rgb"] = "grey"
+    #: side of the square the backbone sees: the frame's shorter side is resized to
+    #: round(input_size * 256 / 224) and the centre square of ``input_size`` cropped (the
+    #: reference's 256 and 224 at the default). A's cost grows with its square, and so does B's
+    #: input (:func:`feature_dim`)
+    input_size: int = Field(224, ge=64, le=512)
     #: ``log_standardise``: each frame's log intensity (per channel) brought to one mean and
     #: spread before the backbone (:func:`log_standardised`): a change of exposure (a gain) or of
     #: the camera's response curve (a gamma) is an affine change of log intensity, which this
@@ -120,12 +144,12 @@ class VisualFeatureExtractor:
         #: what runs: the module, or (``inference: frozen`` on a CPU) its frozen, optimised trace
         self.net = self.module
         if self.config.inference == "frozen" and self.device.type == "cpu":
-            self.net = self._frozen(self.module)
-        self.output_dim = FEATURE_DIMS[self.backbone]
+            self.net = self._frozen(self.module, self.config.input_size)
+        self.output_dim = feature_dim(self.backbone, self.config.input_size)
 
     @staticmethod
-    def _frozen(net: Any) -> Any:
-        """``net`` traced on one 224x224 frame, frozen and optimised for inference (any batch size).
+    def _frozen(net: Any, size: int) -> Any:
+        """``net`` traced on one size x size frame, frozen and optimised for inference (any batch size).
         torch marks torch.jit deprecated in favour of torch.compile, which needs a C++ compiler on
         the robot; where a torch cannot trace, the module runs as written (said once)."""
         import torch
@@ -133,7 +157,7 @@ class VisualFeatureExtractor:
         try:
             with warnings.catch_warnings(), torch.inference_mode(False), torch.no_grad():
                 warnings.simplefilter("ignore", DeprecationWarning)
-                traced = torch.jit.trace(net, torch.zeros(1, 3, 224, 224), check_trace=False)
+                traced = torch.jit.trace(net, torch.zeros(1, 3, size, size), check_trace=False)
                 return torch.jit.optimize_for_inference(torch.jit.freeze(traced))
         except (AttributeError, RuntimeError) as exc:
             log.warning("features: inference: frozen is not available with this torch (%s); "
@@ -197,7 +221,8 @@ class VisualFeatureExtractor:
         return img[y0:y1, x0:x1]
 
     def preprocess(self, rgb: np.ndarray) -> np.ndarray:
-        """HxWx3 uint8 RGB -> 3x224x224 float32 normalised (shorter side 256, centre crop 224).
+        """HxWx3 uint8 RGB -> 3xSxS float32 normalised, S = ``input_size`` (shorter side to
+        round(S * 256 / 224), centre crop S: 256 and 224 at the default).
 
         ``colour: grey`` gives the backbone the grey image in all three channels. The grey image is
         resized and scaled once, and each channel normalised from it: the same numbers as resizing
@@ -206,16 +231,18 @@ class VisualFeatureExtractor:
         grey = self.config.colour == "grey"
         if grey:
             img = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2GRAY)
+        size = self.config.input_size
+        side = round(size * 256 / 224)
         h, w = img.shape[:2]
-        scale = 256.0 / min(h, w)
-        nh, nw = max(256, round(h * scale)), max(256, round(w * scale))
+        scale = side / min(h, w)
+        nh, nw = max(side, round(h * scale)), max(side, round(w * scale))
         img = cv2.resize(np.ascontiguousarray(img), (nw, nh), interpolation=cv2.INTER_LINEAR)
-        top, left = (nh - 224) // 2, (nw - 224) // 2
-        img = img[top:top + 224, left:left + 224].astype(np.float32) / 255.0
+        top, left = (nh - size) // 2, (nw - size) // 2
+        img = img[top:top + size, left:left + size].astype(np.float32) / 255.0
         if self.config.photometric == "log_standardise":
             img = log_standardised(img)
         if grey:
-            out = np.empty((3, 224, 224), np.float32)
+            out = np.empty((3, size, size), np.float32)
             for c in range(3):
                 np.subtract(img, IMAGENET_MEAN[c], out=out[c])
                 np.divide(out[c], IMAGENET_STD[c], out=out[c])
@@ -236,7 +263,8 @@ class VisualFeatureExtractor:
         with torch.inference_mode():
             for n in range(1, max_batch + 1):
                 for _ in range(2):
-                    self.net(torch.zeros(n, 3, 224, 224, device=self.device))
+                    s = self.config.input_size
+                    self.net(torch.zeros(n, 3, s, s, device=self.device))
 
     def extract_batch(self, rgbs: Sequence[np.ndarray]) -> np.ndarray:
         """Several RGB frames -> (n, output_dim) float32, one forward pass."""

@@ -20,7 +20,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from ._config import make_config
 from .calibration import CalibrationConfig, PlatformConfig, RunCalibration
-from .features import FEATURE_DIMS, FeatureConfig, VisualFeatureExtractor
+from .features import FeatureConfig, VisualFeatureExtractor, feature_dim
 from .neocortex import Neocortex, NeocortexConfig
 from .projector import BinaryProjector, ProjectorConfig, TorchProjection
 from .ratslam.local_view import LocalViewCells, LocalViewConfig
@@ -56,7 +56,7 @@ class FrontEndConfig(BaseModel):
             elif feats.device != device:
                 raise ValueError(f"projector.device {device} needs features.device {device} or auto "
                                  f"(A and B share the device), not {feats.device}")
-        proj = self.projector.model_copy(update={"device": device, "input_dim": FEATURE_DIMS[feats.backbone]})
+        proj = self.projector.model_copy(update={"device": device, "input_dim": feature_dim(feats.backbone, feats.input_size)})
         return self.model_copy(update={"features": feats, "projector": proj})
 
 

@@ -296,8 +296,8 @@ def main() -> None:
     res["parts"] = PARTS
     if "input" in only:
         res["input"] = choose_input(PARTS["validation"], args.jobs)
-        size = res["input"]["choice"]
-        res["choice"] = res["input"].pop("grids")[size] if size is not None else None
+        grids = res["input"].pop("grids")
+        res["choice"] = grids.get(res["input"]["choice"])
         if res["choice"] is not None:
             shipped = default_config().spatial_view.calibration
             res["choice"]["choice_is_the_default"] = res["choice"]["choice"] == {"z_min": shipped.z_min,

@@ -5,7 +5,8 @@ optimised for inference on a CPU, the default). Time: the default's backbone on 
 frame at a time (preprocessing included), on the embedded synthetic world's frames, both variants
 interleaved in three rounds; and the frozen backbone on batches of 1-8 frames (``by_batch``: the
 first call of each batch size, which ``warm_up`` pays before a live run, and the time per frame
-after it). Closures: B's bits from each variant on the same frames (the default
+after it); and the frozen backbone at the reference's 224 against the default's input size
+(``input_size``), interleaved. Closures: B's bits from each variant on the same frames (the default
 route's first 1000 frames, Nordland's summer and winter test subset), in order through the same
 running centring; a frame whose bits differ is counted (identical bits give identical templates
 downstream). Writes bench/results/stage_a.json.
@@ -20,6 +21,7 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -75,6 +77,29 @@ def by_batch(frames: list[np.ndarray], max_batch: int = 8, rounds: int = 8) -> d
     return {str(n): {"first_call_ms": first[n], "p50_ms_per_frame": float(np.median(t[n]))} for n in t}
 
 
+def by_input_size(frames: list[np.ndarray], rounds: int = 3) -> dict[str, Any]:
+    """The frozen backbone (one thread, one frame at a time, preprocessing included) at the
+    reference's 224 and at the default's input size, interleaved in ``rounds``: the ratio of one run."""
+    cfg = load_config("default").features.model_copy(update={"inference": "frozen", "threads": 1})
+    sizes = sorted({224, cfg.input_size}, reverse=True)
+    fx = {s: VisualFeatureExtractor(cfg.model_copy(update={"input_size": s})) for s in sizes}
+    for s in sizes:  # warm
+        for im in frames[:10]:
+            fx[s].extract(im)
+    t: dict[int, list[float]] = {s: [] for s in sizes}
+    for _ in range(rounds):
+        for s in sizes:
+            for im in frames:
+                t0 = time.perf_counter()
+                fx[s].extract(im)
+                t[s].append(time.perf_counter() - t0)
+    res: dict[str, Any] = {str(s): {"p50_ms": 1e3 * float(np.median(x)), "p95_ms": 1e3 * float(np.percentile(x, 95)),
+                                    "features": fx[s].output_dim, "frames": len(x)} for s, x in t.items()}
+    res["default"] = cfg.input_size
+    res["ratio_p50"] = res[str(cfg.input_size)]["p50_ms"] / res["224"]["p50_ms"]
+    return res
+
+
 def bits_agreement(frames: list[np.ndarray]) -> dict[str, int]:
     bits = {}
     for v in VARIANTS:
@@ -95,6 +120,7 @@ def main() -> int:
     proto = load_settings("nordland")["protocol"]
     summer, winter, _ = load_frames(proto["step"], min_std=proto["min_std"])
     res = {"time_per_frame": timing(route[:200]), "by_batch": by_batch(route[:8]),
+           "input_size": by_input_size(route[:200]),
            "bits": {"synthetic_route_1000": bits_agreement(route),
                     "nordland_summer_winter": bits_agreement(summer + winter)}}
     e, f = res["time_per_frame"]["eager"], res["time_per_frame"]["frozen"]

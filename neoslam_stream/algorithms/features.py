@@ -5,7 +5,7 @@ preprocessing of the reference (shorter side to 256, centre crop 224, mean/std; 
 scales both; with
 ``photometric: log_standardise`` each frame's log intensity standardised before the mean/std),
 and a CNN layer (:mod:`.backbones`): ``alexnet`` (the paper's: conv3 before its ReLU, 384x13x13 =
-64896 float32), ``efficientnet_lite0`` (block 10, 112x14x14 = 21952, the map closest to conv3's 13x13; what
+64896 float32), ``efficientnet_lite0`` (block 10, 112x14x14 = 21952 at 224, the map closest to conv3's 13x13; what
 ``backbone: auto`` runs without AlexNet's weights) or ``random_alexnet`` (seeded random weights,
 for tests and throughput benches only). Weight files and what "auto" means: :mod:`.weights`.
 On a CPU the backbone runs frozen (``inference``): the same features to float rounding, faster.
@@ -60,7 +60,6 @@ def feature_dim(backbone: str, input_size: int = 224) -> int:
             n = -(-n // 2)
         return 112 * n * n
     raise ValueError(f"unknown backbone {backbone!r}")
-
 
 
 #: the log intensity a frame is brought to by ``photometric: log_standardise``: mean ln 0.5 (mid
@@ -260,10 +259,10 @@ class VisualFeatureExtractor:
             return
         import torch
 
+        s = self.config.input_size
         with torch.inference_mode():
             for n in range(1, max_batch + 1):
                 for _ in range(2):
-                    s = self.config.input_size
                     self.net(torch.zeros(n, 3, s, s, device=self.device))
 
     def extract_batch(self, rgbs: Sequence[np.ndarray]) -> np.ndarray:

@@ -46,7 +46,7 @@ class FrontEndConfig(BaseModel):
 
     def resolved(self) -> FrontEndConfig:
         """This config with "auto" decided, once for every caller: A's backbone (AlexNet when its
-        weights are found, else EfficientNet-Lite0), B's input size n from it, and B's torch
+        weights are found, else EfficientNet-Lite0), B's input size n from it and A's input size, and B's torch
         device; a B on a device shares it with A (only bits leave the device)."""
         feats = self.features.model_copy(update={"backbone": resolve_backbone(self.features)})
         device = resolve_device(self.projector.device) if self.projector.device == "auto" else self.projector.device
@@ -56,7 +56,8 @@ class FrontEndConfig(BaseModel):
             elif feats.device != device:
                 raise ValueError(f"projector.device {device} needs features.device {device} or auto "
                                  f"(A and B share the device), not {feats.device}")
-        proj = self.projector.model_copy(update={"device": device, "input_dim": feature_dim(feats.backbone, feats.input_size)})
+        n = feature_dim(feats.backbone, feats.input_size)
+        proj = self.projector.model_copy(update={"device": device, "input_dim": n})
         return self.model_copy(update={"features": feats, "projector": proj})
 
 

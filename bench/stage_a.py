@@ -39,19 +39,26 @@ from neoslam_stream.sources.synthetic import SyntheticWorldSource  # noqa: E402
 VARIANTS = ("eager", "frozen")
 
 
+def _interleaved(fx: dict[Any, VisualFeatureExtractor], frames: list[np.ndarray], rounds: int) -> dict[Any, list[float]]:
+    """Seconds per frame of each extractor, one frame at a time (preprocessing included), after ten
+    warm-up frames each, the extractors taking turns over ``frames`` in each of ``rounds``."""
+    for f in fx.values():
+        for im in frames[:10]:
+            f.extract(im)
+    t: dict[Any, list[float]] = {k: [] for k in fx}
+    for _ in range(rounds):
+        for k, f in fx.items():
+            for im in frames:
+                t0 = time.perf_counter()
+                f.extract(im)
+                t[k].append(time.perf_counter() - t0)
+    return t
+
+
 def timing(frames: list[np.ndarray], rounds: int = 3) -> dict[str, dict[str, float]]:
     cfg = load_config("default").features
     fx = {v: VisualFeatureExtractor(cfg.model_copy(update={"inference": v, "threads": 1})) for v in VARIANTS}
-    for v in VARIANTS:  # warm
-        for im in frames[:10]:
-            fx[v].extract(im)
-    t: dict[str, list[float]] = {v: [] for v in VARIANTS}
-    for _ in range(rounds):
-        for v in VARIANTS:
-            for im in frames:
-                t0 = time.perf_counter()
-                fx[v].extract(im)
-                t[v].append(time.perf_counter() - t0)
+    t = _interleaved(fx, frames, rounds)
     return {v: {"backbone": fx[v].backbone, "p50_ms": 1e3 * float(np.median(x)), "mean_ms": 1e3 * float(np.mean(x)),
                 "p95_ms": 1e3 * float(np.percentile(x, 95)), "frames": len(x)} for v, x in t.items()}
 
@@ -83,16 +90,7 @@ def by_input_size(frames: list[np.ndarray], rounds: int = 3) -> dict[str, Any]:
     cfg = load_config("default").features.model_copy(update={"inference": "frozen", "threads": 1})
     sizes = sorted({224, cfg.input_size}, reverse=True)
     fx = {s: VisualFeatureExtractor(cfg.model_copy(update={"input_size": s})) for s in sizes}
-    for s in sizes:  # warm
-        for im in frames[:10]:
-            fx[s].extract(im)
-    t: dict[int, list[float]] = {s: [] for s in sizes}
-    for _ in range(rounds):
-        for s in sizes:
-            for im in frames:
-                t0 = time.perf_counter()
-                fx[s].extract(im)
-                t[s].append(time.perf_counter() - t0)
+    t = _interleaved(fx, frames, rounds)
     res: dict[str, Any] = {str(s): {"p50_ms": 1e3 * float(np.median(x)), "p95_ms": 1e3 * float(np.percentile(x, 95)),
                                     "features": fx[s].output_dim, "frames": len(x)} for s, x in t.items()}
     res["default"] = cfg.input_size

@@ -296,20 +296,11 @@ def main() -> None:
     res["parts"] = PARTS
     if "input" in only:
         res["input"] = choose_input(PARTS["validation"], args.jobs)
-        grids = res["input"].pop("grids")
-        res["choice"] = grids.get(res["input"]["choice"])
-        if res["choice"] is not None:
-            shipped = default_config().spatial_view.calibration
-            res["choice"]["choice_is_the_default"] = res["choice"]["choice"] == {"z_min": shipped.z_min,
-                                                                               "rho": shipped.rho}
+        res["choice"] = res["input"].pop("grids").get(res["input"]["choice"])
     if "light" in only:
         res["light"] = choose_light(PARTS["validation"])
     if "choice" in only and "input" not in only:
-        valid = {}
-        for part in PARTS["validation"]:
-            stream = part_stream(part)
-            valid[part] = (stream, stream.cells(FrontEnd(default_config(stream.platform).front_end())))
-        res["choice"] = choose(valid)
+        res["choice"] = _grid_at(default_config().features.input_size, PARTS["validation"])
     kinds = {"nordland": "nordland", "synthetic": "synthetic", "proxies": ("sparse", "hard")}
     for key, prefix in kinds.items():
         if key in only:

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import hashlib
 import json
 import os
 import pickle
@@ -54,14 +55,16 @@ RULE = (f"lowest mean online APE relative to {REFERENCE_S:g} s's over {', '.join
 
 def front_end_stream(seed: int) -> list[tuple]:
     """The default's front end on synthetic world ``seed``, per frame: (template id or None,
-    relative rotation, odometry, stamp, true x y), cached."""
-    path = CACHE / f"world{seed}.pkl"
+    relative rotation, odometry, stamp, true x y), cached under a digest of the front end's
+    config, so that a changed default records its stream again."""
+    cfg = load_config("default", {"source": {"params": {"seed": seed}}})
+    digest = hashlib.sha256(cfg.front_end().model_dump_json().encode()).hexdigest()[:12]
+    path = CACHE / f"world{seed}_{digest}.pkl"
     if path.exists():
         return pickle.loads(path.read_bytes())
     from neoslam_stream.api import NeoSLAM
     from neoslam_stream.sources.synthetic import SyntheticWorldSource
 
-    cfg = load_config("default", {"source": {"params": {"seed": seed}}})
     slam = NeoSLAM(cfg, backend=False)
     rows = []
     for f in SyntheticWorldSource(**cfg.source.params):

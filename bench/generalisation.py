@@ -39,16 +39,18 @@ from neoslam_stream.config import load_config  # noqa: E402
 RESULTS = Path(__file__).resolve().parent / "results"
 CACHE = Path(os.environ.get("NEOSLAM_CACHE", "/tmp/neoslam_generalisation"))
 
-#: which part of each data set chooses the constants and which reports
+#: which part of each data set chooses the constants and which reports; every kind reported has
+#: validation parts of its own, the stand-ins under other light ("hard") in worlds 9-11, which no
+#: other part uses
 PARTS = {"validation": ["nordland:2", "nordland:4", "nordland:6", "synthetic:1", "synthetic:3", "synthetic:4",
-                        "sparse:1", "sparse:2"],
+                        "sparse:1", "sparse:2", "hard:9", "hard:10", "hard:11"],
          "test": ["nordland:0", "synthetic:0", "synthetic:2", "sparse:0", "sparse:3", "sparse:4", "sparse:5",
                   "hard:0", "hard:1", "hard:2", "hard:3"]}
 GRID = {"z_min": [3.0, 3.5, 4.0, 4.5], "rho": [0.7, 0.9, 1.0, 1.1, 1.2, 1.3]}
 #: precision each kind of validation part must reach, with a margin over the targets (Nordland's
-#: 0.9, the synthetic world's 0.99); among the grid points that reach every one, the highest mean
-#: recall over the validation parts wins (up to TIE)
-BARS = {"nordland": 0.93, "synthetic": 0.99, "sparse": 0.95}
+#: 0.9, the synthetic world's 0.99, the stand-ins' 0.9 with or without other light); among the grid
+#: points that reach every one, the highest mean recall over the validation parts wins (up to TIE)
+BARS = {"nordland": 0.93, "synthetic": 0.99, "sparse": 0.95, "hard": 0.95}
 #: grid points whose mean recall is within this of the best feasible one are ties, and a tie goes to
 #: the larger z_min, then the larger rho: the more conservative decision, whose precision keeps room
 #: over the bars (at z_min 3 Nordland's subset 4 sits at 0.933 against its 0.93)

@@ -116,7 +116,7 @@ def test_another_input_size_scales_the_resize_and_the_crop(size, side):
 
 
 @pytest.mark.parametrize("backbone", ["efficientnet_lite0", "random_alexnet"])
-@pytest.mark.parametrize("size", [224, 192, 160, 100])
+@pytest.mark.parametrize("size", [224, 192, 160, 128, 100])
 def test_feature_dim_is_what_the_network_gives(backbone, size):
     # the formula's length equals the network's output on a frame of that size (AlexNet's 64896 and
     # EfficientNet-Lite0's 21952 at 224); the extractor's frozen trace takes the same size
@@ -128,6 +128,8 @@ def test_feature_dim_is_what_the_network_gives(backbone, size):
         assert fx.module(torch.zeros(1, 3, size, size)).numel() == fx.output_dim
     if size == 224:
         assert fx.output_dim == {"efficientnet_lite0": 112 * 14 * 14, "random_alexnet": 384 * 13 * 13}[backbone]
+    if size == 128:  # the default's: 128 -> 64 -> 32 -> 16 -> 8 (EfficientNet); (128 + 4 - 11) // 4 + 1 = 31 -> 15 -> 7
+        assert fx.output_dim == {"efficientnet_lite0": 112 * 8 * 8, "random_alexnet": 384 * 7 * 7}[backbone]
 
 
 def _torchvision_state(seed=0):

@@ -54,8 +54,8 @@ class CalibrationConfig(BaseModel):
     #: (chosen on validation parts with rho: bench/generalisation.py, docs/mapping.md)
     z_min: float = Field(3.5, ge=0)
     #: and reaches this fraction of the way from their mean to the level of the view a moment ago
-    #: (1: as alike as two views a moment apart; 1.2: a fifth of that excess more alike)
-    rho: float = Field(1.2, ge=0)
+    #: (1: as alike as two views a moment apart; 0.9: nine tenths of that excess over the mean)
+    rho: float = Field(0.9, ge=0)
     #: candidates (outside the winner's neighbourhood) needed before the statistics are trusted
     min_candidates: int = Field(20, ge=3)
     #: travel over which consistent evidence is needed

@@ -9,6 +9,8 @@ protocol decides itself (thresholds, what it resolves from the data).
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 from pathlib import Path
 from typing import Any
@@ -18,6 +20,12 @@ import yaml
 from neoslam_stream.config import ConfigError, load_config
 
 SETTINGS = Path(__file__).resolve().parent / "settings"
+
+
+def cache_key(obj: Any) -> str:
+    """A short digest of ``obj`` (settings sections, config dumps: JSON with sorted keys) that names a
+    bench's cached recording, so that a changed setting records anew instead of reusing another's."""
+    return hashlib.sha1(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
 def data_root() -> Path:

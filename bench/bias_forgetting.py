@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import functools
-import hashlib
 import json
 import os
 import pickle
@@ -35,6 +34,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench_settings import cache_key  # noqa: E402
 from relaxation import TEST, VALIDATION  # noqa: E402  (the back end's parts, as the relaxation's)
 
 from neoslam_stream.algorithms.backend import BackEnd  # noqa: E402
@@ -58,8 +58,7 @@ def front_end_stream(seed: int) -> list[tuple]:
     relative rotation, odometry, stamp, true x y), cached under a digest of the front end's
     config, so that a changed default records its stream again."""
     cfg = load_config("default", {"source": {"params": {"seed": seed}}})
-    digest = hashlib.sha256(cfg.front_end().model_dump_json().encode()).hexdigest()[:12]
-    path = CACHE / f"world{seed}_{digest}.pkl"
+    path = CACHE / f"world{seed}_{cache_key(cfg.front_end().model_dump())}.pkl"
     if path.exists():
         return pickle.loads(path.read_bytes())
     from neoslam_stream.api import NeoSLAM

@@ -18,7 +18,6 @@ Run: ``.venv/bin/python bench/maps.py [--only NAME ...]``.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import os
 import sys
@@ -33,7 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import nordland  # noqa: E402
 import tuc_corridor  # noqa: E402
-from bench_settings import check_sections, load_settings, read_settings  # noqa: E402
+from bench_settings import cache_key, check_sections, load_settings, read_settings  # noqa: E402
 
 from neoslam_stream.algorithms.frontend import FrontEnd  # noqa: E402
 from neoslam_stream.config import FullRunConfig, load_config  # noqa: E402
@@ -43,10 +42,6 @@ from neoslam_stream.tum import integrate_odometry, write_tum  # noqa: E402
 
 CACHE = Path(os.environ.get("NEOSLAM_CACHE", "/tmp/neoslam_maps"))
 RESULTS = Path(__file__).parent / "results"
-
-
-def _key(obj: Any) -> str:
-    return hashlib.sha1(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
 def levers() -> dict[str, Any]:
@@ -70,7 +65,7 @@ def synthetic_inputs(frames: int | None = None) -> dict[str, np.ndarray]:
 
     cfg = load_config("default")
     fe = FrontEnd(cfg.front_end())
-    path = CACHE / f"synthetic_{_key([fe.config.features.model_dump(), frames])}.npz"
+    path = CACHE / f"synthetic_{cache_key([fe.config.features.model_dump(), frames])}.npz"
     if path.exists():
         return dict(np.load(path))
     CACHE.mkdir(parents=True, exist_ok=True)
@@ -99,7 +94,7 @@ def sdrs(cfg: Any, data: dict[str, np.ndarray]) -> list[np.ndarray]:
     at a time, as its node does in a lossless run."""
     fe = front_end(cfg, str(data["backbone"]))
     c = fe.config
-    path = CACHE / f"sdr_{_key([c.projector.model_dump(), c.neocortex.model_dump(), len(data['stamps'])])}.npz"
+    path = CACHE / f"sdr_{cache_key([c.projector.model_dump(), c.neocortex.model_dump(), len(data['stamps'])])}.npz"
     if path.exists():
         z = np.load(path)
         return np.split(z["cells"], z["ptr"][1:-1])
@@ -157,7 +152,7 @@ def nordland_inputs(backbone: str = "efficientnet_lite0", offset: int = 0) -> di
     """A's features of the summer then winter frames (8 at a time, as the nodes batch), cached.
     ``offset``: every step-th thumbnail from the offset-th on (4: the validation subset, disjoint
     from the test protocol's offset 0)."""
-    path = CACHE / f"nordland_{_key([backbone, NORDLAND] + ([offset] if offset else []))}.npz"
+    path = CACHE / f"nordland_{cache_key([backbone, NORDLAND] + ([offset] if offset else []))}.npz"
     if path.exists():
         z = np.load(path)
         return {"features": z["features"], "ids": z["ids"].tolist(), "n": int(z["n"]), "backbone": str(z["backbone"])}
@@ -182,7 +177,7 @@ def run_nordland(proj: dict, svc_list: list[dict], data: dict[str, Any]) -> list
 def nordland_sdrs(proj: dict, data: dict[str, Any]) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """B's bits (``proj`` on top of the defaults) and the real C's winner cells of every frame, cached."""
     feats = data["features"]
-    path = CACHE / f"nordland_sdr_{_key([proj, feats.shape, float(feats.sum(dtype=np.float64))])}.npz"
+    path = CACHE / f"nordland_sdr_{cache_key([proj, feats.shape, float(feats.sum(dtype=np.float64))])}.npz"
     if path.exists():
         z = np.load(path)
         bits = np.split(z["bits"], z["bptr"][1:-1])

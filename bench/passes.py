@@ -19,7 +19,6 @@ Run: ``.venv/bin/python bench/passes.py [--passes 10] [--out bench/results/passe
 from __future__ import annotations
 
 import argparse
-import hashlib
 import itertools
 import json
 import os
@@ -30,6 +29,9 @@ from pathlib import Path
 from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from bench_settings import cache_key  # noqa: E402
 
 from neoslam_stream.algorithms.frontend import FrontEnd  # noqa: E402
 from neoslam_stream.config import load_config  # noqa: E402
@@ -44,8 +46,7 @@ def cache_path() -> Path:
     change to any of them records the passes anew instead of replaying another front end's cells."""
     cfg = load_config("default")
     sections = [cfg.features.model_dump(), cfg.projector.model_dump(), cfg.neocortex.model_dump()]
-    key = hashlib.sha1(json.dumps(sections, sort_keys=True, default=str).encode()).hexdigest()[:10]
-    return CACHE / f"passes_cells_{RECORDED}_{key}.pkl"
+    return CACHE / f"passes_cells_{RECORDED}_{cache_key(sections)}.pkl"
 
 
 def record(path: Path | None = None) -> dict[str, Any]:

@@ -192,19 +192,25 @@ def test_d_finds_no_loop_before_a_shortest_loop_has_passed():
     assert not any(r["is_loop_closure"] for r in out)
 
 
-def test_the_calibrated_state_survives_a_checkpoint():
+@pytest.mark.parametrize("cut", [70, 90])
+def test_the_calibrated_state_survives_a_checkpoint(cut):
+    """Frames 0.25 s apart, so the measured interval differs from the one a fresh run assumes
+    (1 s) and the stretch of evidence is 3 frames, not 1: a restored run must measure it from the
+    saved intervals before it restores the evidence, or it keeps only one frame of it. Cut 90
+    falls among the second traversal's closures."""
     rng = np.random.default_rng(4)
     places = _places(60, rng)
     frames = [_noisy(p, rng, 0.9) for p in places] + [_noisy(p, rng, 0.6) for p in places]
     whole = _d()
-    ref = [whole.compute(f, stamp=float(i)) for i, f in enumerate(frames)]
+    ref = [whole.compute(f, stamp=0.25 * i) for i, f in enumerate(frames)]
+    assert whole.calibration.sequence_frames == 3 and any(r["is_loop_closure"] for r in ref[cut:])
     first = _d()
-    for i, f in enumerate(frames[:70]):
-        first.compute(f, stamp=float(i))
+    for i, f in enumerate(frames[:cut]):
+        first.compute(f, stamp=0.25 * i)
     resumed = _d()
     resumed.load_state_dict(first.state_dict())
-    rest = [resumed.compute(f, stamp=float(70 + i)) for i, f in enumerate(frames[70:])]
-    assert rest == ref[70:]
+    rest = [resumed.compute(f, stamp=0.25 * (cut + i)) for i, f in enumerate(frames[cut:])]
+    assert rest == ref[cut:]
 
 
 def test_revisits_stay_out_of_the_index_and_later_drives_still_close():

@@ -224,9 +224,10 @@ class RunCalibration:
                             self.first_closure_frame, self.templates_merged]}
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
+        # the intervals first: the evidence kept (L frames) follows from the interval they measure
+        self.intervals = deque((float(v) for v in st.get("intervals", [])), maxlen=64)
         self.history = deque(((int(t), int(m), float(c)) for t, m, c in st.get("history", [])),
                              maxlen=max(self.sequence_frames, 1))
-        self.intervals = deque((float(v) for v in st.get("intervals", [])), maxlen=64)
         self.pending = [(int(f), int(k), int(m)) for f, k, m in st.get("pending", [])]
         stamp = st.get("last_stamp")
         self.last_stamp = None if stamp is None else float(stamp)

@@ -131,3 +131,44 @@ def test_wait_for_returns_when_an_item_of_its_topic_arrives_or_the_time_is_up():
     assert q.wait_for("x", 30.0)  # returns when it arrives, long before the 30 s
     later.join()
     assert q.depth() == {"x": 1, "y": 1}  # waiting takes nothing
+
+
+def _bindable(port: int) -> bool:
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
+def test_a_port_another_process_handed_out_lately_is_not_handed_out_again(tmp_path, monkeypatch):
+    """Two runs starting together on one machine drew the same free port now and then: both saw it
+    free, and the later worker to bind it failed its start-up ("Address already in use"). The
+    draw is scripted here to repeat a port; the registry of ports handed out must skip it."""
+    import tempfile
+    import types
+
+    from neoslam_stream.runtime import bus
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    low = bus._ephemeral_low()
+    p, q = [port for port in range(max(1025, low - 12000), low, 97) if _bindable(port)][:2]
+    draws = iter([p, p, q, p])
+
+    class Scripted:
+        def choice(self, _candidates):
+            return next(draws)
+
+    monkeypatch.setattr(bus, "random", types.SimpleNamespace(Random=Scripted))
+    monkeypatch.setattr(bus, "_ISSUED_PORTS", set())
+    assert bus.free_port() == p
+    monkeypatch.setattr(bus, "_ISSUED_PORTS", set())  # another process: its own set is empty
+    assert bus.free_port() == q  # p was drawn again and skipped
+    assert {int(line.split()[0]) for line in (tmp_path / bus._port_registry().name).read_text().splitlines()} == {p, q}
+    # once the reservation has run out (the worker has bound it, or never will), p may come again
+    monkeypatch.setattr(bus, "PORT_RESERVE_S", 0.0)
+    monkeypatch.setattr(bus, "_ISSUED_PORTS", set())
+    assert bus.free_port() == p

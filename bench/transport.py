@@ -24,7 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from neoslam_stream.runtime.bus import Bus, InputQueue, free_port, open_session, wait_for_peers
+from neoslam_stream.runtime.bus import Bus, InputQueue, open_session, wait_for_peers
+from neoslam_stream.runtime.ports import free_port
 
 HEADER = struct.Struct("<qd")  # sequence number, send time
 

@@ -5,7 +5,8 @@ import time
 
 import pytest
 
-from neoslam_stream.runtime.bus import Bus, InputQueue, free_port, open_session, wait_for_peers
+from neoslam_stream.runtime.bus import Bus, InputQueue, open_session, wait_for_peers
+from neoslam_stream.runtime.ports import free_port
 
 pytestmark = pytest.mark.zenoh
 
@@ -151,10 +152,10 @@ def test_a_port_another_process_handed_out_lately_is_not_handed_out_again(tmp_pa
     import tempfile
     import types
 
-    from neoslam_stream.runtime import bus
+    from neoslam_stream.runtime import ports
 
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
-    low = bus._ephemeral_low()
+    low = ports._ephemeral_low()
     p, q = [port for port in range(max(1025, low - 12000), low, 97) if _bindable(port)][:2]
     draws = iter([p, p, q, p])
 
@@ -162,13 +163,13 @@ def test_a_port_another_process_handed_out_lately_is_not_handed_out_again(tmp_pa
         def choice(self, _candidates):
             return next(draws)
 
-    monkeypatch.setattr(bus, "random", types.SimpleNamespace(Random=Scripted))
-    monkeypatch.setattr(bus, "_ISSUED_PORTS", set())
-    assert bus.free_port() == p
-    monkeypatch.setattr(bus, "_ISSUED_PORTS", set())  # another process: its own set is empty
-    assert bus.free_port() == q  # p was drawn again and skipped
-    assert {int(line.split()[0]) for line in (tmp_path / bus._port_registry().name).read_text().splitlines()} == {p, q}
+    monkeypatch.setattr(ports, "random", types.SimpleNamespace(Random=Scripted))
+    monkeypatch.setattr(ports, "_ISSUED_PORTS", set())
+    assert ports.free_port() == p
+    monkeypatch.setattr(ports, "_ISSUED_PORTS", set())  # another process: its own set is empty
+    assert ports.free_port() == q  # p was drawn again and skipped
+    assert {int(line.split()[0]) for line in (tmp_path / ports._port_registry().name).read_text().splitlines()} == {p, q}
     # once the reservation has run out (the worker has bound it, or never will), p may come again
-    monkeypatch.setattr(bus, "PORT_RESERVE_S", 0.0)
-    monkeypatch.setattr(bus, "_ISSUED_PORTS", set())
-    assert bus.free_port() == p
+    monkeypatch.setattr(ports, "PORT_RESERVE_S", 0.0)
+    monkeypatch.setattr(ports, "_ISSUED_PORTS", set())
+    assert ports.free_port() == p

@@ -18,8 +18,8 @@ from runhelpers import light_config
 
 from neoslam_stream.config import load_config
 from neoslam_stream.nodes.pipelines import build_plan
-from neoslam_stream.runtime.bus import free_port
 from neoslam_stream.runtime.parts import PartSupervisor, check_selection, parse_stages
+from neoslam_stream.runtime.ports import free_port
 from neoslam_stream.runtime.topology import CONTROL_TOKEN_ENV, RunError, group_workers
 
 FRAMES = 30

@@ -290,7 +290,8 @@ def test_bad_cdr_samples_from_a_bridged_camera_are_counted_and_skipped(tmp_path)
     good frames: the source counts each with its cause, the good frames go through A-D."""
     from rosbags.typesys import Stores, get_typestore
 
-    from neoslam_stream.runtime.bus import free_port, open_session, wait_for_peers
+    from neoslam_stream.runtime.bus import open_session, wait_for_peers
+    from neoslam_stream.runtime.ports import free_port
     from neoslam_stream.sources import cdr
 
     ts = get_typestore(Stores.ROS2_HUMBLE)

@@ -18,8 +18,9 @@ from zenoh.ext import Int64, z_deserialize
 from neoslam_stream.nodes.recorder import MCAP, RecorderNode
 from neoslam_stream.nodes.ros2_out import TOPICS, Ros2Messages, Ros2OutNode, replay, type_hash
 from neoslam_stream.nodes.topics import EXPERIENCE_MAP, EXPERIENCE_POSE, VISUAL_TEMPLATE
-from neoslam_stream.runtime.bus import free_port, open_session, wait_for_peers
+from neoslam_stream.runtime.bus import open_session, wait_for_peers
 from neoslam_stream.runtime.messages import Message
+from neoslam_stream.runtime.ports import free_port
 
 #: rmw_zenoh's design document (docs/design.md): demo_nodes_cpp's talker on Jazzy publishes
 #: std_msgs/msg/String with this hash (the loop-closure topic's type)

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from neoslam_stream.evaluation import write_tum
-from neoslam_stream.runtime.bus import free_port, open_session
+from neoslam_stream.runtime.bus import open_session
+from neoslam_stream.runtime.ports import free_port
 from neoslam_stream.sources import cdr
 from neoslam_stream.sources.bag import BagSource
 from neoslam_stream.sources.files import ImageFolderSource, VideoSource

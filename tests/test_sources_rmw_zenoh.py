@@ -11,7 +11,8 @@ import pytest
 import zenoh
 from zenoh.ext import Int64, z_serialize
 
-from neoslam_stream.runtime.bus import free_port, open_session, wait_for_peers
+from neoslam_stream.runtime.bus import open_session, wait_for_peers
+from neoslam_stream.runtime.ports import free_port
 from neoslam_stream.sources import cdr, source_factory
 from neoslam_stream.sources.rmw_zenoh import (
     Attachment,

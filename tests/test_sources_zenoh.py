@@ -7,8 +7,9 @@ import cv2
 import numpy as np
 import pytest
 
-from neoslam_stream.runtime.bus import free_port, open_session, wait_for_peers
+from neoslam_stream.runtime.bus import open_session, wait_for_peers
 from neoslam_stream.runtime.messages import Message, encode
+from neoslam_stream.runtime.ports import free_port
 from neoslam_stream.sources import cdr
 from neoslam_stream.sources.zenoh_camera import ZenohImageSource, ZenohRos2CameraSource
 

@@ -29,7 +29,7 @@ from typing import Any
 
 import yaml
 
-from .bus import ZENOH_CONFIG_ENV, ZENOH_TX_QUEUE_ENV, free_port, key_for, open_session
+from .bus import ZENOH_CONFIG_ENV, ZENOH_TX_QUEUE_ENV, key_for, open_session
 from .checkpoint import cut_dir, latest_complete_cut
 from .children import ChildProcesses
 from .collector import FinalTracker, StatsCollector
@@ -37,6 +37,7 @@ from .host import host_usage, sample_host
 from .messages import register_topics
 from .monitor import MonitorSpec
 from .plan import PipelinePlan, RunError, RunResult, group_workers, make_run_dir
+from .ports import free_port
 from .procs import monitor_entry, source_entry, worker_entry
 from .report import build_report, mark_status, write_report
 from .source_runner import SourceRunSpec, SourceSpec

@@ -16,6 +16,8 @@ import socket
 import time
 from pathlib import Path
 
+from .files import write_all
+
 _ISSUED_PORTS: set[int] = set()
 #: a port handed out by any process of this user on this machine stays reserved this long: the
 #: worker it was meant for binds it within its start-up (a run that cannot start in that time
@@ -74,7 +76,7 @@ class _Registry:
             data = "".join(f"{p} {t:.3f}\n" for p, t in self.recent.items()).encode()
             os.lseek(self.fd, 0, os.SEEK_SET)
             os.ftruncate(self.fd, 0)
-            os.write(self.fd, data)
+            write_all(self.fd, data)
         except OSError:
             pass
 

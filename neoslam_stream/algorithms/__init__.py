@@ -8,7 +8,7 @@ No transport, no processes; nothing here imports ``neoslam_stream.runtime``, ``.
 * ``features`` (A, with ``backbones``, ``weights``)       image -> feature vector
 * ``projector``, ``projection`` (B)                        features -> sLSBH bits (matrix, kernels)
 * ``neocortex``, ``temporal_memory`` (+ ``_kernels``) (C)  bits -> winner cells (HTM Temporal Memory)
-* ``spatial_view`` (D), ``interval_index``, ``interval_kernels``   SDR -> template id, loop closure
+* ``spatial_view`` (D), ``interval_index`` (+ two kernel modules)  SDR -> template id, loop closure
 * ``sequence``, ``oracle``  a sequence filter over D's closures; templates from ground truth
 * ``backend``   BackEnd: yaw bias, odometry gate, pose cells, experience map
 * ``ratslam``   PoseCellNetwork, ExperienceMap, LocalViewCells, VisualOdometry, YawBiasEstimator, ...

@@ -8,7 +8,8 @@ merge finishes. Cells whose lists grow long also get dense rows (one bit per int
 a cost model picks the bounded posting-list search or the bit-sliced count over the dense rows;
 both give exactly the top two of counting every posting, which ``exhaustive = True`` does (the
 reference). Each union's sorted cells are stored too, for exact scores of single candidates.
-Kernels: :mod:`.interval_kernels`; speed: docs/frontend.md, docs/performance.md.
+Kernels: :mod:`.interval_kernels` and :mod:`.interval_sliced_kernels`; speed: docs/frontend.md,
+docs/performance.md.
 """
 
 from __future__ import annotations
@@ -18,7 +19,9 @@ from typing import Any
 import numpy as np
 
 from . import interval_kernels as kern
-from .interval_kernels import BLOCK, SLICE_BLOCK, SLICE_WORDS, SLICES
+from . import interval_sliced_kernels as sliced_kern
+from .interval_kernels import BLOCK
+from .interval_sliced_kernels import SLICE_BLOCK, SLICE_WORDS, SLICES
 
 #: the linked part is merged into the CSR part once it holds this many postings and more than a
 #: quarter of the CSR part (512 intervals of 512 cells: no compaction at all for small maps)
@@ -163,7 +166,7 @@ class IntervalIndex:
         row = self._row_of[bits]
         if self._n_dense > 1:
             self._dense_capacity(interval, 0)
-            kern.set_dense_bits(self._dense, self._row_of, bits, interval)
+            sliced_kern.set_dense_bits(self._dense, self._row_of, bits, interval)
         fresh = bits[row < 0]
         cnt = self._count[fresh]
         promote = fresh[(cnt >= self.dense_min) & (cnt * 32 >= interval + 1)]
@@ -175,7 +178,7 @@ class IntervalIndex:
             r = self._n_dense
             self._n_dense += 1
             self._row_of[b] = r
-            kern.fill_dense_row(int(b), r, self._dense, self._ptr, self._post, *frozen, *self._linked_arrays())
+            sliced_kern.fill_dense_row(int(b), r, self._dense, self._ptr, self._post, *frozen, *self._linked_arrays())
 
     def _dense_capacity(self, interval: int, new_rows: int) -> None:
         """Room in the dense rows for interval ``interval`` and ``new_rows`` more rows (doubling)."""
@@ -243,7 +246,7 @@ class IntervalIndex:
         if sliced and use is None:  # the cost model of top2_bounded, the sparse cells counted either way
             sliced = 3 * _row_words(n_dense, k_all) < int(self._count[y[dense]].sum())
         if sliced:
-            kern.scores_sliced(self._query_rows(row[dense]), self._dense, k_all, scores)
+            sliced_kern.scores_sliced(self._query_rows(row[dense]), self._dense, k_all, scores)
             y = y[~dense]
         kern.scores_csr(self._ptr, self._post, y, scores)
         if self._frozen is not None:
@@ -293,7 +296,7 @@ class IntervalIndex:
             sliced = n_dense > 0 and 3 * _row_words(n_dense, limit) + 10 * sparse_postings < int(lengths.sum())
         if sliced:
             read = sparse_postings
-            b1, s1, b2, s2, verified = kern.top2_sliced(
+            b1, s1, b2, s2, verified = sliced_kern.top2_sliced(
                 y, self._query_rows(rows[dense]), y[~dense], self._dense, self._ptr, self._post, *frozen,
                 self._pool, self._next, self._head, self._tail, self._fill, self._u_ptr, self._u_cells, limit, h,
                 self._inq, self._partial, self._touched)

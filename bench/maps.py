@@ -1,4 +1,4 @@
-"""The lever study of the mapping settings -> bench/results/maps.json (docs/mapping.md).
+"""The lever study of the mapping settings -> bench/results/maps.json (docs/levers.md).
 
 Each lever of bench/settings/levers.yaml is measured ALONE against the paper profile
 (``configs/paper.yaml``) and the kept levers together (the default), on:

@@ -109,7 +109,7 @@ def scenario(name: str, args: argparse.Namespace, work: Path) -> dict:
 
 
 def summary(scenarios: dict) -> dict:
-    """The figures of the set in a few lines (docs/runtime.md and docs/reliability.md quote them)."""
+    """The figures of the set in a few lines (docs/hosts.md and docs/reliability.md quote them)."""
     out: dict = {}
     base, slow = scenarios.get("realtime_no_added_delay"), scenarios.get("realtime_latency")
     if base and slow and base.get("latency_p50_ms") and slow.get("latency_p50_ms"):

@@ -103,7 +103,7 @@ VALIDATE = {
 }
 MAKE = {"make run", "make test", "make bench", "make", 'make run ARGS="--max-frames 300"'}
 ELSEWHERE = {
-    "export": "a shell assignment (the split run's secret, docs/runtime.md); tests/test_parts.py sets it",
+    "export": "a shell assignment (the split run's secret, docs/hosts.md); tests/test_parts.py sets it",
     "zenoh-bridge-ros2dds": "zenoh's bridge, run on the robot (not part of this package)",
     "ros2": "a ROS 2 installation's command (rmw_zenoh's router, foxglove_bridge), run on the ROS 2 side",
     "RMW_IMPLEMENTATION=rmw_zenoh_cpp": "RViz with rmw_zenoh, run on the ROS 2 side",

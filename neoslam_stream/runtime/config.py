@@ -39,7 +39,7 @@ class BusConfig(Strict):
     listen: list[str] = Field(default_factory=list)
     connect: list[str] = Field(default_factory=list)
     #: endpoints on which the supervisor's router alone also listens: the rendezvous of a run split
-    #: over several hosts (docs/runtime.md "Several hosts"); every other process stays on `host`
+    #: over several hosts (docs/hosts.md); every other process stays on `host`
     router_listen: list[str] = Field(default_factory=list)
     #: zenoh shared memory for large payloads. Off: at camera rates it gains little per message and
     #: its first use in each process stalls the pipeline (docs/performance.md)

@@ -10,7 +10,7 @@ processes with the run's ``stop`` control messages; the source runs on the host 
 ``source`` in its ``--stages`` (a camera on the robot), else on the primary. ``rest`` takes every
 worker no other host announced (liveliness tokens ``neoslam/<run>/part/...``). What the hosts
 tell each other, and how a lossless run survives a lost link: parts_recovery.py.
-Details: docs/runtime.md, "One run, stages on several hosts".
+Details: docs/hosts.md, "One run, stages on several hosts".
 """
 
 from __future__ import annotations

@@ -54,8 +54,9 @@ def map_input(seed: int) -> dict[str, Any]:
     return {"calls": calls, "gt": np.array(gt), "config": cfg.experience_map.model_dump()}
 
 
-def replay(inp: dict[str, Any], **relaxation: Any) -> dict[str, float]:
-    em = ExperienceMap(**{**inp["config"], **relaxation})
+def replay(inp: dict[str, Any], map_cls: type = ExperienceMap, **relaxation: Any) -> dict[str, float]:
+    """The recorded map input through a fresh map (``map_cls``, with ``relaxation``'s settings)."""
+    em = map_cls(**{**inp["config"], **relaxation})
     poses, local = [], []
     t0 = time.perf_counter()
     for kind, args in inp["calls"]:

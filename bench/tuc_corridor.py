@@ -78,7 +78,7 @@ def halfway_s() -> float:
     return float(odom[0, 0] + odom[-1, 0]) / 2
 
 
-def run_half(half: str, pose_cells: dict, experience_map: dict) -> dict:
+def run_half(half: str, pose_cells: dict, experience_map: dict, map_cls: type = ExperienceMap) -> dict:
     """:func:`run` on one half of the recording alone, under bench/settings/tuc.yaml's protocol:
     ``first`` (up to :func:`halfway_s`, the half on which the back end's constants are chosen) or
     ``second`` (from it on, held out)."""
@@ -86,7 +86,7 @@ def run_half(half: str, pose_cells: dict, experience_map: dict) -> dict:
         raise ValueError(f"half must be 'first' or 'second', got {half!r}")
     proto = load_settings("tuc")["protocol"]
     part = {"limit_s": halfway_s()} if half == "first" else {"start_s": halfway_s()}
-    return run(pose_cells, experience_map, proto["threshold"], proto["min_gap_s"], **part)
+    return run(pose_cells, experience_map, proto["threshold"], proto["min_gap_s"], map_cls=map_cls, **part)
 
 
 def templates_from_loops(loops: np.ndarray, threshold: float, min_gap_s: float,
@@ -135,18 +135,20 @@ def align_rigid_2d(est: np.ndarray, ref: np.ndarray) -> np.ndarray:
 
 
 def run(pose_cells: dict, experience_map: dict, threshold: float = 0.8, min_gap_s: float = 60.0,
-        limit_s: float | None = None, sequence: dict | None = None, start_s: float | None = None) -> dict:
+        limit_s: float | None = None, sequence: dict | None = None, start_s: float | None = None,
+        map_cls: type = ExperienceMap) -> dict:
     """The corridor run through the pose-cell stage (``pose_cells``: that config section, with its
     ``odometry_gate`` and ``odometry_bias``) and an experience map (``experience_map``); the
     templates that arrive between two odometry steps reach the stage first, as in a run.
     ``sequence``: see :func:`templates_from_loops`. ``map_on_final_mean_m``: the error of every
     step re-expressed on the final map (as trajectory_map.tum). ``start_s`` / ``limit_s``: a run
-    of that part of the recording alone (:func:`load`), e.g. the half that chose no constant."""
+    of that part of the recording alone (:func:`load`), e.g. the half that chose no constant.
+    ``map_cls``: the experience map's class (bench/relaxation_models.py measures others)."""
     odom, loops, gt = load(limit_s, start_s)
     ids = templates_from_loops(loops, threshold, min_gap_s, sequence)
     frame_times = np.array(sorted(ids))
     stage = PoseCellStage(pose_cells)
-    em = ExperienceMap(experience_map)
+    em = map_cls(experience_map)
     fi = 0
     est, dr, local = [], [], []
     x = y = 0.0

@@ -1,0 +1,232 @@
+"""Solves of the experience map beyond the shipped least squares, measured and not shipped
+-> bench/results/relaxation_models.json (docs/mapping.md: "A pose-graph solve", "A wandering bias
+in the solve").
+
+The shipped solve (``relaxation: least_squares``, algorithms/ratslam/graph_solve.py) takes the
+headings first and the positions after them. Each model here starts from that solution and runs
+Gauss-Newton on SE(2) over the same links, a step halved until the weighted sum of squares falls:
+
+* ``joint:L``: a link's position residual, in its from-experience's frame, weighted 1 per m² and
+  its heading residual L per rad², so a closure's position error can turn headings;
+* ``stretch:L``: as joint, plus one unknown heading rate per stretch of dead reckoning (the links
+  from one loop link to the next, that loop link included), its heading residual + rate x dt;
+* ``walk:L:M``: as joint, plus a heading rate per link that follows a random walk from link to
+  link (each step weighted M per (rad/s)²), as a drifting yaw-rate bias does;
+* ``walk_scaled:SW:SB``: the walk with a random walk's variances: position 1 / (d + median d),
+  heading 1 / (SW (dt + median dt)), a bias step 1 / (SB (dt + median dt)).
+
+Replayed on the inputs of bench/relaxation.py: the default's map input, recorded once per
+synthetic world, and the TUC corridor's halves run alone with the default's back end. Nothing is
+chosen here: the relaxation's rule (docs/mapping.md) never saw these candidates before it ran.
+
+Run: ``.venv/bin/python bench/relaxation_models.py [--models joint:1,walk:10:100] [--worlds 1,3,4,0,2]
+[--tuc first,second] [--out bench/results/relaxation_models.json]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+from scipy.sparse.linalg import splu
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+from neoslam_stream.algorithms.ratslam.angles import wrap_pi  # noqa: E402
+from neoslam_stream.algorithms.ratslam.experience_map import ExperienceMap  # noqa: E402
+from neoslam_stream.algorithms.ratslam.graph_solve import relax_least_squares  # noqa: E402
+
+DEFAULT_MODELS = "joint:1,joint:3,stretch:1,walk:10:100,walk_scaled:0.01:0.001,walk_scaled:0.1:0.01,walk_scaled:0.1:0.001"
+#: weight of each rate's own prior, rate² per (rad/s)²: only keeps a rate no link constrains at 0
+RATE_PRIOR = 1e-6
+MAX_STEPS = 30
+
+
+def parse_model(spec: str) -> dict[str, Any]:
+    """``joint:L``, ``stretch:L``, ``walk:L:M`` or ``walk_scaled:SW:SB`` (module docstring)."""
+    kind, *args = spec.split(":")
+    need = {"joint": 1, "stretch": 1, "walk": 2, "walk_scaled": 2}
+    if kind not in need or len(args) != need[kind]:
+        raise ValueError(f"model {spec!r}: expected joint:L, stretch:L, walk:L:M or walk_scaled:SW:SB")
+    return {"kind": kind, "args": [float(a) for a in args], "name": spec}
+
+
+def _weights(model: dict[str, Any], ld: np.ndarray, ldt: np.ndarray, n_rates: int) -> tuple[np.ndarray, ...]:
+    """(position, heading, rate-step) weights per link (steps: one fewer than links)."""
+    m = ld.shape[0]
+    kind, a = model["kind"], model["args"]
+    if kind == "walk_scaled":
+        d0, t0 = np.median(ld) + 1e-9, np.median(ldt) + 1e-9
+        return 1.0 / (ld + d0), 1.0 / (a[0] * (ldt + t0)), 1.0 / (a[1] * (ldt[1:] + t0))
+    step = np.full(m - 1, a[1]) if kind == "walk" else np.zeros(0)
+    return np.ones(m), np.full(m, a[0]), step
+
+
+def pose_graph(x: np.ndarray, y: np.ndarray, th: np.ndarray, lf: np.ndarray, lt: np.ndarray, ld: np.ndarray,
+               lh: np.ndarray, lface: np.ndarray, ldt: np.ndarray, closes: np.ndarray,
+               model: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, float]]:
+    """New (x, y, th) of the experiences and the solve's figures, as the module docstring says.
+
+    Links as ExperienceMap stores them: from, to, d, heading, facing, dt; ``closes``: whether each
+    link closed a loop (the stretches' ends). Each connected part keeps its centroid and mean
+    heading, as the least-squares solve does."""
+    x, y, th = relax_least_squares(x, y, th, lf, lt, ld, lh, lface)
+    n, m = x.shape[0], lf.shape[0]
+    kind = model["kind"]
+    if kind == "stretch":  # a loop link ends its stretch: the links after it start the next
+        rate_of = np.concatenate([[0], np.cumsum(closes[:-1])]).astype(np.int64)
+    elif kind in ("walk", "walk_scaled"):
+        rate_of = np.arange(m)
+    else:
+        rate_of = np.zeros(0, np.int64)
+    n_rates = int(rate_of.max()) + 1 if rate_of.size else 0
+    walk = kind in ("walk", "walk_scaled")
+    wp, wt, wb = _weights(model, ld, ldt, n_rates)
+    inc = sp.csr_matrix((np.ones(2 * m), (np.r_[np.arange(m), np.arange(m)], np.r_[lf, lt])), shape=(m, n))
+    n_parts, part = connected_components((inc.T @ inc).tocsr(), directed=False)
+    grounded = np.zeros(n, dtype=bool)
+    grounded[np.unique(part, return_index=True)[1]] = True
+    free = np.r_[np.repeat(~grounded, 3), np.ones(n_rates, dtype=bool)]
+    n_steps = wb.shape[0] if walk else 0
+    w = np.r_[np.ravel(np.c_[wp, wp, wt]), wb, np.full(n_rates, RATE_PRIOR)]
+    meas_x, meas_y = ld * np.cos(lh), ld * np.sin(lh)
+    rate_dt = ldt if n_rates else np.zeros(m)
+
+    def residual(x, y, th, r):
+        dx, dy = x[lt] - x[lf], y[lt] - y[lf]
+        c, s = np.cos(th[lf]), np.sin(th[lf])
+        qx, qy = c * dx + s * dy, -s * dx + c * dy
+        turn = wrap_pi(th[lt] - th[lf] - lface) + (r[rate_of] * rate_dt if n_rates else 0.0)
+        e = np.r_[np.ravel(np.c_[qx - meas_x, qy - meas_y, turn]), np.diff(r) if walk else [], r]
+        return e, c, s, qx, qy
+
+    rows = 3 * np.arange(m)
+    a3, b3 = 3 * lf, 3 * lt
+    rr = 3 * n + rate_of
+    ks = np.arange(n_steps)
+
+    def jacobian(c, s, qx, qy):
+        R = [rows, rows, rows, rows, rows, rows + 1, rows + 1, rows + 1, rows + 1, rows + 1, rows + 2, rows + 2]
+        C = [a3, a3 + 1, b3, b3 + 1, a3 + 2, a3, a3 + 1, b3, b3 + 1, a3 + 2, a3 + 2, b3 + 2]
+        V = [-c, -s, c, s, qy, s, -c, -s, c, -qx, -np.ones(m), np.ones(m)]
+        if n_rates:
+            R += [rows + 2, 3 * m + n_steps + np.arange(n_rates)]
+            C += [rr, 3 * n + np.arange(n_rates)]
+            V += [rate_dt, np.ones(n_rates)]
+        if n_steps:
+            R += [3 * m + ks, 3 * m + ks]
+            C += [3 * n + ks + 1, 3 * n + ks]
+            V += [np.ones(n_steps), -np.ones(n_steps)]
+        shape = (3 * m + n_steps + n_rates, 3 * n + n_rates)
+        return sp.csr_matrix((np.concatenate(V), (np.concatenate(R), np.concatenate(C))), shape=shape)
+
+    th0, cx0, cy0 = th.copy(), [x[part == k].mean() for k in range(n_parts)], [y[part == k].mean() for k in range(n_parts)]
+    r = np.zeros(n_rates)
+    e, c, s, qx, qy = residual(x, y, th, r)
+    cost0 = cost = float(e @ (w * e))
+    steps = 0
+    while steps < MAX_STEPS:
+        steps += 1
+        J = jacobian(c, s, qx, qy)[:, free]
+        H = (J.T @ sp.diags(w) @ J).tocsc()
+        d = np.zeros(3 * n + n_rates)
+        d[free] = -splu(H).solve(J.T @ (w * e))
+        for _ in range(30):  # halve the step until the sum of squares falls
+            trial = (x + d[0:3 * n:3], y + d[1:3 * n:3], th + d[2:3 * n:3], r + d[3 * n:])
+            e_new, *rest = residual(*trial)
+            cost_new = float(e_new @ (w * e_new))
+            if cost_new <= cost:
+                break
+            d *= 0.5
+        if cost_new > cost:
+            break
+        (x, y, th, r), e, (c, s, qx, qy) = trial, e_new, rest
+        done = (cost - cost_new) < 1e-9 * max(cost, 1e-12)
+        cost = cost_new
+        if done:
+            break
+    for k in range(n_parts):  # the part's mean heading and centroid stay: one rigid motion
+        sel = part == k
+        turn = wrap_pi(th0[sel] - th[sel])
+        t = np.arctan2(np.sin(turn).sum(), np.cos(turn).sum())
+        ct, st = np.cos(t), np.sin(t)
+        xs, ys = x[sel] - x[sel].mean(), y[sel] - y[sel].mean()
+        x[sel], y[sel], th[sel] = ct * xs - st * ys + cx0[k], st * xs + ct * ys + cy0[k], th[sel] + t
+    return x, y, wrap_pi(th), {"steps": steps, "cost_before": cost0, "cost": cost,
+                               "max_rate": float(np.abs(r).max()) if n_rates else 0.0}
+
+
+def map_class(model: dict[str, Any]) -> type:
+    """An ExperienceMap whose loop links are followed by :func:`pose_graph` under ``model``."""
+
+    class ModelMap(ExperienceMap):
+        def __init__(self, *args: Any, **kwargs: Any) -> None:
+            super().__init__(*args, **kwargs)
+            self.closes: list[bool] = []
+            self.solves = 0
+
+        def _link(self, a: int, b: int, rel_rad: float, closes_loop: bool = True) -> None:
+            m0 = self._m
+            super()._link(a, b, rel_rad, closes_loop)
+            if self._m > m0:
+                self.closes.append(closes_loop)
+
+        def iterate(self) -> None:
+            if self._m < 2 or not self._loop_linked:
+                return
+            self._loop_linked = False
+            nodes, lf, lv = self._nodes, self._lf[: self._m], self._lv[: self._m]
+            x, y, th, _ = pose_graph(nodes[: self._n, 0].copy(), nodes[: self._n, 1].copy(), nodes[: self._n, 2].copy(),
+                                     lf[:, 0].astype(np.int64), lf[:, 1].astype(np.int64), lv[:, 0], lv[:, 1],
+                                     lv[:, 2], lv[:, 3], np.array(self.closes), model)
+            nodes[: self._n, 0], nodes[: self._n, 1], nodes[: self._n, 2] = x, y, th
+            self.solves += 1
+
+    return ModelMap
+
+
+def main() -> None:
+    from relaxation import map_input, replay
+
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--models", default=DEFAULT_MODELS, help="comma-separated model specs")
+    ap.add_argument("--worlds", default="1,3,4,0,2", help="synthetic worlds (seeds), comma-separated")
+    ap.add_argument("--tuc", default="first,second", help="TUC halves to run ('' for none)")
+    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "relaxation_models.json"))
+    args = ap.parse_args()
+    models = [parse_model(s) for s in args.models.split(",") if s]
+    cases: list[tuple[str, Any]] = [(f"synthetic:{s}", int(s)) for s in args.worlds.split(",") if s]
+    cases += [(f"tuc:{h}", h) for h in args.tuc.split(",") if h]
+    parts: dict[str, dict[str, Any]] = {}
+    for part, arg in cases:
+        parts[part] = {}
+        inp = map_input(arg) if part.startswith("synthetic") else None
+        for name, cls in [("least_squares", ExperienceMap)] + [(m["name"], map_class(m)) for m in models]:
+            t0 = time.perf_counter()
+            if inp is not None:
+                r = replay(inp, map_cls=cls, relaxation="least_squares")
+                row = {"online_m": r["online_m"], "final_map_m": r["final_map_m"]}
+            else:
+                from bench_settings import back_end_sections
+                from tuc_corridor import run_half
+
+                pose_cells, em = back_end_sections("tuc")
+                r = run_half(arg, pose_cells, {**em, "relaxation": "least_squares"}, map_cls=cls)
+                row = {"online_m": r["map_mean_m"], "final_map_m": r["map_on_final_mean_m"]}
+            parts[part][name] = {**row, "seconds": time.perf_counter() - t0}
+            print(part, name, json.dumps(parts[part][name]), flush=True)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"models": [m["name"] for m in models], "parts": parts}, indent=1))
+    print("wrote", out)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,86 @@
+"""bench/relaxation_models.py: the pose-graph solves measured beside the shipped least squares."""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+
+from relaxation_models import map_class, parse_model, pose_graph  # noqa: E402
+
+from neoslam_stream.algorithms.ratslam.actions import CREATE_EDGE, CREATE_NODE  # noqa: E402
+from neoslam_stream.algorithms.ratslam.experience_map import ExperienceMap  # noqa: E402
+from neoslam_stream.evaluation import ape  # noqa: E402
+
+MODELS = ["joint:1", "stretch:1", "walk:10:100", "walk_scaled:0.01:0.001"]
+N, DT, RADIUS = 126, 0.2, 2.0  # one circle in N steps of DT seconds: a regular N-gon
+W = 2 * math.pi / (N * DT)
+
+
+def _circle(cls, bias_at) -> tuple[ExperienceMap, np.ndarray]:
+    """A map of one circle driven with the yaw rate W + bias_at(t), an experience per step and the
+    start recognised at the end; and the experiences' true positions (the same rotate-then-advance
+    integration without the bias, so that a map without bias closes exactly)."""
+    em = cls(exp_initial_em_deg=0, relaxation="least_squares")
+    em.on_action(CREATE_NODE, 0, 0, 0.0)
+    truth, x, y, th = [(0.0, 0.0)], 0.0, 0.0, 0.0
+    step = 2 * RADIUS * math.sin(W * DT / 2) / DT  # speed whose chord per step lies on the circle
+    for k in range(1, N + 1):
+        em.on_odo(step, W + bias_at(k * DT), DT)
+        th += W * DT
+        x, y = x + step * DT * math.cos(th), y + step * DT * math.sin(th)
+        if k < N:
+            em.on_action(CREATE_NODE, k - 1, k, 0.0)
+            truth.append((x, y))
+    em.on_action(CREATE_EDGE, N - 1, 0, 0.0)  # back at the start, facing as then
+    return em, np.array(truth)
+
+
+def test_a_map_whose_links_agree_is_left_as_it_is():
+    for spec in MODELS:
+        em, truth = _circle(map_class(parse_model(spec)), lambda t: 0.0)
+        np.testing.assert_allclose(np.c_[em.x, em.y], truth, atol=1e-9, err_msg=spec)
+        assert em.solves == 1
+
+
+def test_the_joint_solve_keeps_what_the_least_squares_solve_had_right():
+    # links that agree give a sum of squares of 0 before any step: nothing to move
+    em, _ = _circle(ExperienceMap, lambda t: 0.0)
+    lf, lv = np.array([k[:2] for k in em.links]), np.array([k[2:6] for k in em.links])
+    closes = np.r_[np.zeros(N - 1, bool), True]
+    _, _, _, info = pose_graph(em.x.copy(), em.y.copy(), em.th.copy(), lf[:, 0].astype(np.int64),
+                               lf[:, 1].astype(np.int64), lv[:, 0], lv[:, 1], lv[:, 2], lv[:, 3], closes,
+                               parse_model("joint:1"))
+    assert info["cost_before"] == pytest.approx(0.0, abs=1e-20) and info["cost"] <= info["cost_before"]
+
+
+def test_a_drifting_bias_is_bent_back_by_the_random_walk_of_rates():
+    # the bias grows from 0 to 0.04 rad/s over the circle, so the heading error grows with the
+    # square of time: the least-squares solve shares the heading misclosure equally by the links
+    # (a constant bias), the joint solve also lets the position misclosure turn headings, and the
+    # random walk of rates (smooth here: its steps weigh 10, the white heading errors 1000) can
+    # follow the ramp itself
+    def drift(t):
+        return 0.04 * t / (N * DT)
+
+    truth = _circle(ExperienceMap, drift)[1]
+    err = {}
+    for name, cls in (("least_squares", ExperienceMap), ("joint", map_class(parse_model("joint:1"))),
+                      ("walk", map_class(parse_model("walk:1000:10")))):
+        em = _circle(cls, drift)[0]
+        err[name] = ape(np.c_[em.x, em.y], truth)["mean_m"]
+    assert err["least_squares"] > 0.02  # the case is a real test of the least-squares solve
+    assert err["joint"] < err["least_squares"]
+    assert err["walk"] < err["joint"] / 2  # the rates do the work, not the joint solve alone
+
+
+def test_model_specs_are_checked():
+    assert parse_model("walk:10:100") == {"kind": "walk", "args": [10.0, 100.0], "name": "walk:10:100"}
+    for bad in ("joint", "walk:1", "sweeps:3", "joint:1:2"):
+        with pytest.raises(ValueError, match="expected joint:L"):
+            parse_model(bad)

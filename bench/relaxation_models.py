@@ -10,8 +10,9 @@ Gauss-Newton on SE(2) over the same links, a step halved until the weighted sum 
   its heading residual L per rad², so a closure's position error can turn headings;
 * ``stretch:L``: as joint, plus one unknown heading rate per stretch of dead reckoning (the links
   from one loop link to the next, that loop link included), its heading residual + rate x dt;
-* ``walk:L:M``: as joint, plus a heading rate per link that follows a random walk from link to
-  link (each step weighted M per (rad/s)²), as a drifting yaw-rate bias does;
+* ``walk:L:M[:P]``: as joint, plus a heading rate per link that follows a random walk from link
+  to link (each step weighted M per (rad/s)², each rate P, by default only enough to keep a rate
+  no link constrains at 0), as a drifting yaw-rate bias does;
 * ``walk_scaled:SW:SB``: the walk with a random walk's variances: position 1 / (d + median d),
   heading 1 / (SW (dt + median dt)), a bias step 1 / (SB (dt + median dt)).
 
@@ -43,18 +44,19 @@ from neoslam_stream.algorithms.ratslam.angles import wrap_pi  # noqa: E402
 from neoslam_stream.algorithms.ratslam.experience_map import ExperienceMap  # noqa: E402
 from neoslam_stream.algorithms.ratslam.graph_solve import relax_least_squares  # noqa: E402
 
-DEFAULT_MODELS = "joint:1,joint:3,stretch:1,walk:10:100,walk_scaled:0.01:0.001,walk_scaled:0.1:0.01,walk_scaled:0.1:0.001"
+DEFAULT_MODELS = ("joint:1,joint:3,stretch:1,walk:10:100,walk:10:100:1,walk_scaled:0.01:0.001,walk_scaled:0.1:0.01,"
+                  "walk_scaled:0.1:0.001")
 #: weight of each rate's own prior, rate² per (rad/s)²: only keeps a rate no link constrains at 0
 RATE_PRIOR = 1e-6
 MAX_STEPS = 30
 
 
 def parse_model(spec: str) -> dict[str, Any]:
-    """``joint:L``, ``stretch:L``, ``walk:L:M`` or ``walk_scaled:SW:SB`` (module docstring)."""
+    """``joint:L``, ``stretch:L``, ``walk:L:M[:P]`` or ``walk_scaled:SW:SB`` (module docstring)."""
     kind, *args = spec.split(":")
-    need = {"joint": 1, "stretch": 1, "walk": 2, "walk_scaled": 2}
-    if kind not in need or len(args) != need[kind]:
-        raise ValueError(f"model {spec!r}: expected joint:L, stretch:L, walk:L:M or walk_scaled:SW:SB")
+    need = {"joint": (1,), "stretch": (1,), "walk": (2, 3), "walk_scaled": (2,)}
+    if kind not in need or len(args) not in need[kind]:
+        raise ValueError(f"model {spec!r}: expected joint:L, stretch:L, walk:L:M[:P] or walk_scaled:SW:SB")
     return {"kind": kind, "args": [float(a) for a in args], "name": spec}
 
 
@@ -95,7 +97,8 @@ def pose_graph(x: np.ndarray, y: np.ndarray, th: np.ndarray, lf: np.ndarray, lt:
     grounded[np.unique(part, return_index=True)[1]] = True
     free = np.r_[np.repeat(~grounded, 3), np.ones(n_rates, dtype=bool)]
     n_steps = wb.shape[0] if walk else 0
-    w = np.r_[np.ravel(np.c_[wp, wp, wt]), wb, np.full(n_rates, RATE_PRIOR)]
+    prior = model["args"][2] if kind == "walk" and len(model["args"]) > 2 else RATE_PRIOR
+    w = np.r_[np.ravel(np.c_[wp, wp, wt]), wb, np.full(n_rates, prior)]
     meas_x, meas_y = ld * np.cos(lh), ld * np.sin(lh)
     rate_dt = ldt if n_rates else np.zeros(m)
 

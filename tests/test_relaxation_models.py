@@ -81,6 +81,6 @@ def test_a_drifting_bias_is_bent_back_by_the_random_walk_of_rates():
 
 def test_model_specs_are_checked():
     assert parse_model("walk:10:100") == {"kind": "walk", "args": [10.0, 100.0], "name": "walk:10:100"}
-    for bad in ("joint", "walk:1", "sweeps:3", "joint:1:2"):
+    for bad in ("joint", "walk:1", "walk:1:2:3:4", "sweeps:3", "joint:1:2"):
         with pytest.raises(ValueError, match="expected joint:L"):
             parse_model(bad)

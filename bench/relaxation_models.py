@@ -35,14 +35,13 @@ from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import splu
 
 sys.path.insert(0, str(Path(__file__).parent))
 
 from neoslam_stream.algorithms.ratslam.angles import wrap_pi  # noqa: E402
 from neoslam_stream.algorithms.ratslam.experience_map import ExperienceMap  # noqa: E402
-from neoslam_stream.algorithms.ratslam.graph_solve import relax_least_squares  # noqa: E402
+from neoslam_stream.algorithms.ratslam.graph_solve import grounded_parts, relax_least_squares  # noqa: E402
 
 DEFAULT_MODELS = ("joint:1,joint:3,stretch:1,walk:10:100,walk:10:100:1,walk_scaled:0.01:0.001,walk_scaled:0.1:0.01,"
                   "walk_scaled:0.1:0.001")
@@ -60,7 +59,7 @@ def parse_model(spec: str) -> dict[str, Any]:
     return {"kind": kind, "args": [float(a) for a in args], "name": spec}
 
 
-def _weights(model: dict[str, Any], ld: np.ndarray, ldt: np.ndarray, n_rates: int) -> tuple[np.ndarray, ...]:
+def _weights(model: dict[str, Any], ld: np.ndarray, ldt: np.ndarray) -> tuple[np.ndarray, ...]:
     """(position, heading, rate-step) weights per link (steps: one fewer than links)."""
     m = ld.shape[0]
     kind, a = model["kind"], model["args"]
@@ -90,23 +89,20 @@ def pose_graph(x: np.ndarray, y: np.ndarray, th: np.ndarray, lf: np.ndarray, lt:
         rate_of = np.zeros(0, np.int64)
     n_rates = int(rate_of.max()) + 1 if rate_of.size else 0
     walk = kind in ("walk", "walk_scaled")
-    wp, wt, wb = _weights(model, ld, ldt, n_rates)
+    wp, wt, wb = _weights(model, ld, ldt)
     inc = sp.csr_matrix((np.ones(2 * m), (np.r_[np.arange(m), np.arange(m)], np.r_[lf, lt])), shape=(m, n))
-    n_parts, part = connected_components((inc.T @ inc).tocsr(), directed=False)
-    grounded = np.zeros(n, dtype=bool)
-    grounded[np.unique(part, return_index=True)[1]] = True
+    n_parts, part, grounded = grounded_parts((inc.T @ inc).tocsr())
     free = np.r_[np.repeat(~grounded, 3), np.ones(n_rates, dtype=bool)]
-    n_steps = wb.shape[0] if walk else 0
+    n_steps = wb.shape[0]  # links - 1 for a walk, else none
     prior = model["args"][2] if kind == "walk" and len(model["args"]) > 2 else RATE_PRIOR
     w = np.r_[np.ravel(np.c_[wp, wp, wt]), wb, np.full(n_rates, prior)]
     meas_x, meas_y = ld * np.cos(lh), ld * np.sin(lh)
-    rate_dt = ldt if n_rates else np.zeros(m)
 
     def residual(x, y, th, r):
         dx, dy = x[lt] - x[lf], y[lt] - y[lf]
         c, s = np.cos(th[lf]), np.sin(th[lf])
         qx, qy = c * dx + s * dy, -s * dx + c * dy
-        turn = wrap_pi(th[lt] - th[lf] - lface) + (r[rate_of] * rate_dt if n_rates else 0.0)
+        turn = wrap_pi(th[lt] - th[lf] - lface) + (r[rate_of] * ldt if n_rates else 0.0)
         e = np.r_[np.ravel(np.c_[qx - meas_x, qy - meas_y, turn]), np.diff(r) if walk else [], r]
         return e, c, s, qx, qy
 
@@ -122,7 +118,7 @@ def pose_graph(x: np.ndarray, y: np.ndarray, th: np.ndarray, lf: np.ndarray, lt:
         if n_rates:
             R += [rows + 2, 3 * m + n_steps + np.arange(n_rates)]
             C += [rr, 3 * n + np.arange(n_rates)]
-            V += [rate_dt, np.ones(n_rates)]
+            V += [ldt, np.ones(n_rates)]
         if n_steps:
             R += [3 * m + ks, 3 * m + ks]
             C += [3 * n + ks + 1, 3 * n + ks]
@@ -210,17 +206,19 @@ def main() -> None:
     parts: dict[str, dict[str, Any]] = {}
     for part, arg in cases:
         parts[part] = {}
-        inp = map_input(arg) if part.startswith("synthetic") else None
+        if part.startswith("synthetic"):
+            inp = map_input(arg)
+        else:
+            from bench_settings import back_end_sections
+            from tuc_corridor import run_half
+
+            inp, (pose_cells, em) = None, back_end_sections("tuc")
         for name, cls in [("least_squares", ExperienceMap)] + [(m["name"], map_class(m)) for m in models]:
             t0 = time.perf_counter()
             if inp is not None:
                 r = replay(inp, map_cls=cls, relaxation="least_squares")
                 row = {"online_m": r["online_m"], "final_map_m": r["final_map_m"]}
             else:
-                from bench_settings import back_end_sections
-                from tuc_corridor import run_half
-
-                pose_cells, em = back_end_sections("tuc")
                 r = run_half(arg, pose_cells, {**em, "relaxation": "least_squares"}, map_cls=cls)
                 row = {"online_m": r["map_mean_m"], "final_map_m": r["map_on_final_mean_m"]}
             parts[part][name] = {**row, "seconds": time.perf_counter() - t0}

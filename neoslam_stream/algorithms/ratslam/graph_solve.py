@@ -26,6 +26,16 @@ from scipy.sparse.linalg import splu
 from .angles import wrap_pi
 
 
+def grounded_parts(lap: sp.spmatrix) -> tuple[int, np.ndarray, np.ndarray]:
+    """The graph's connected parts (``lap``: its Laplacian or any matrix with its links' pattern):
+    their number, each experience's part, and one experience per part that holds still in a solve
+    (its value is fixed afterwards by the part's centroid)."""
+    n_parts, part = connected_components(lap, directed=False)
+    grounded = np.zeros(lap.shape[0], dtype=bool)
+    grounded[np.unique(part, return_index=True)[1]] = True
+    return n_parts, part, grounded
+
+
 def relax_least_squares(x: np.ndarray, y: np.ndarray, th: np.ndarray, lfrom: np.ndarray, lto: np.ndarray,
                         ld: np.ndarray, lhead: np.ndarray, lface: np.ndarray) -> tuple[np.ndarray, ...]:
     """New (x, y, th) of n experiences from m links (from, to, d, heading, facing), as the module
@@ -37,10 +47,7 @@ def relax_least_squares(x: np.ndarray, y: np.ndarray, th: np.ndarray, lfrom: np.
     inc = sp.csr_matrix((np.concatenate([-np.ones(m), np.ones(m)]), (rows, np.concatenate([lfrom, lto]))),
                         shape=(m, n))
     lap = (inc.T @ inc).tocsr()
-    n_parts, part = connected_components(lap, directed=False)
-    # one experience of each part holds still (its value is fixed afterwards by the part's centroid)
-    grounded = np.zeros(n, dtype=bool)
-    grounded[np.unique(part, return_index=True)[1]] = True
+    n_parts, part, grounded = grounded_parts(lap)
     free = ~grounded
     lu = splu(lap[free][:, free].tocsc()) if free.any() else None
 

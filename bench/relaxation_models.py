@@ -1,10 +1,11 @@
-"""Solves of the experience map beyond the shipped least squares, measured and not shipped
--> bench/results/relaxation_models.json (docs/mapping.md: "A pose-graph solve", "A wandering bias
-in the solve").
+"""Solves of the experience map beside the least squares, measured before the default's
+``bias_walk`` existed -> bench/results/relaxation_models.json (docs/mapping.md: "A pose-graph solve",
+"A wandering bias in the solve").
 
-The shipped solve (``relaxation: least_squares``, algorithms/ratslam/graph_solve.py) takes the
+The least-squares solve (``relaxation: least_squares``, algorithms/ratslam/graph_solve.py) takes the
 headings first and the positions after them. Each model here starts from that solution and runs
-Gauss-Newton on SE(2) over the same links, a step halved until the weighted sum of squares falls:
+the Gauss-Newton solve on SE(2) that the default's ``bias_walk`` runs (algorithms/ratslam/
+pose_graph.py) over the same links, with its own weights and rates:
 
 * ``joint:L``: a link's position residual, in its from-experience's frame, weighted 1 per m² and
   its heading residual L per rad², so a closure's position error can turn headings;
@@ -34,20 +35,14 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.linalg import splu
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-from neoslam_stream.algorithms.ratslam.angles import wrap_pi  # noqa: E402
 from neoslam_stream.algorithms.ratslam.experience_map import ExperienceMap  # noqa: E402
-from neoslam_stream.algorithms.ratslam.graph_solve import grounded_parts, relax_least_squares  # noqa: E402
+from neoslam_stream.algorithms.ratslam.pose_graph import RATE_PRIOR, relax_pose_graph  # noqa: E402
 
 DEFAULT_MODELS = ("joint:1,joint:3,stretch:1,walk:10:100,walk:10:100:1,walk_scaled:0.01:0.001,walk_scaled:0.1:0.01,"
                   "walk_scaled:0.1:0.001")
-#: weight of each rate's own prior, rate² per (rad/s)²: only keeps a rate no link constrains at 0
-RATE_PRIOR = 1e-6
-MAX_STEPS = 30
 
 
 def parse_model(spec: str) -> dict[str, Any]:
@@ -73,93 +68,22 @@ def _weights(model: dict[str, Any], ld: np.ndarray, ldt: np.ndarray) -> tuple[np
 def pose_graph(x: np.ndarray, y: np.ndarray, th: np.ndarray, lf: np.ndarray, lt: np.ndarray, ld: np.ndarray,
                lh: np.ndarray, lface: np.ndarray, ldt: np.ndarray, closes: np.ndarray,
                model: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict[str, float]]:
-    """New (x, y, th) of the experiences and the solve's figures, as the module docstring says.
+    """New (x, y, th) of the experiences and the solve's figures, as the module docstring says:
+    algorithms/ratslam/pose_graph.py's solve with the model's weights and rates.
 
     Links as ExperienceMap stores them: from, to, d, heading, facing, dt; ``closes``: whether each
-    link closed a loop (the stretches' ends). Each connected part keeps its centroid and mean
-    heading, as the least-squares solve does."""
-    x, y, th = relax_least_squares(x, y, th, lf, lt, ld, lh, lface)
-    n, m = x.shape[0], lf.shape[0]
+    link closed a loop (the stretches' ends)."""
+    m = lf.shape[0]
     kind = model["kind"]
     if kind == "stretch":  # a loop link ends its stretch: the links after it start the next
         rate_of = np.concatenate([[0], np.cumsum(closes[:-1])]).astype(np.int64)
     elif kind in ("walk", "walk_scaled"):
         rate_of = np.arange(m)
     else:
-        rate_of = np.zeros(0, np.int64)
-    n_rates = int(rate_of.max()) + 1 if rate_of.size else 0
-    walk = kind in ("walk", "walk_scaled")
+        rate_of = None
     wp, wt, wb = _weights(model, ld, ldt)
-    inc = sp.csr_matrix((np.ones(2 * m), (np.r_[np.arange(m), np.arange(m)], np.r_[lf, lt])), shape=(m, n))
-    n_parts, part, grounded = grounded_parts((inc.T @ inc).tocsr())
-    free = np.r_[np.repeat(~grounded, 3), np.ones(n_rates, dtype=bool)]
-    n_steps = wb.shape[0]  # links - 1 for a walk, else none
     prior = model["args"][2] if kind == "walk" and len(model["args"]) > 2 else RATE_PRIOR
-    w = np.r_[np.ravel(np.c_[wp, wp, wt]), wb, np.full(n_rates, prior)]
-    meas_x, meas_y = ld * np.cos(lh), ld * np.sin(lh)
-
-    def residual(x, y, th, r):
-        dx, dy = x[lt] - x[lf], y[lt] - y[lf]
-        c, s = np.cos(th[lf]), np.sin(th[lf])
-        qx, qy = c * dx + s * dy, -s * dx + c * dy
-        turn = wrap_pi(th[lt] - th[lf] - lface) + (r[rate_of] * ldt if n_rates else 0.0)
-        e = np.r_[np.ravel(np.c_[qx - meas_x, qy - meas_y, turn]), np.diff(r) if walk else [], r]
-        return e, c, s, qx, qy
-
-    rows = 3 * np.arange(m)
-    a3, b3 = 3 * lf, 3 * lt
-    rr = 3 * n + rate_of
-    ks = np.arange(n_steps)
-
-    def jacobian(c, s, qx, qy):
-        R = [rows, rows, rows, rows, rows, rows + 1, rows + 1, rows + 1, rows + 1, rows + 1, rows + 2, rows + 2]
-        C = [a3, a3 + 1, b3, b3 + 1, a3 + 2, a3, a3 + 1, b3, b3 + 1, a3 + 2, a3 + 2, b3 + 2]
-        V = [-c, -s, c, s, qy, s, -c, -s, c, -qx, -np.ones(m), np.ones(m)]
-        if n_rates:
-            R += [rows + 2, 3 * m + n_steps + np.arange(n_rates)]
-            C += [rr, 3 * n + np.arange(n_rates)]
-            V += [ldt, np.ones(n_rates)]
-        if n_steps:
-            R += [3 * m + ks, 3 * m + ks]
-            C += [3 * n + ks + 1, 3 * n + ks]
-            V += [np.ones(n_steps), -np.ones(n_steps)]
-        shape = (3 * m + n_steps + n_rates, 3 * n + n_rates)
-        return sp.csr_matrix((np.concatenate(V), (np.concatenate(R), np.concatenate(C))), shape=shape)
-
-    th0, cx0, cy0 = th.copy(), [x[part == k].mean() for k in range(n_parts)], [y[part == k].mean() for k in range(n_parts)]
-    r = np.zeros(n_rates)
-    e, c, s, qx, qy = residual(x, y, th, r)
-    cost0 = cost = float(e @ (w * e))
-    steps = 0
-    while steps < MAX_STEPS:
-        steps += 1
-        J = jacobian(c, s, qx, qy)[:, free]
-        H = (J.T @ sp.diags(w) @ J).tocsc()
-        d = np.zeros(3 * n + n_rates)
-        d[free] = -splu(H).solve(J.T @ (w * e))
-        for _ in range(30):  # halve the step until the sum of squares falls
-            trial = (x + d[0:3 * n:3], y + d[1:3 * n:3], th + d[2:3 * n:3], r + d[3 * n:])
-            e_new, *rest = residual(*trial)
-            cost_new = float(e_new @ (w * e_new))
-            if cost_new <= cost:
-                break
-            d *= 0.5
-        if cost_new > cost:
-            break
-        (x, y, th, r), e, (c, s, qx, qy) = trial, e_new, rest
-        done = (cost - cost_new) < 1e-9 * max(cost, 1e-12)
-        cost = cost_new
-        if done:
-            break
-    for k in range(n_parts):  # the part's mean heading and centroid stay: one rigid motion
-        sel = part == k
-        turn = wrap_pi(th0[sel] - th[sel])
-        t = np.arctan2(np.sin(turn).sum(), np.cos(turn).sum())
-        ct, st = np.cos(t), np.sin(t)
-        xs, ys = x[sel] - x[sel].mean(), y[sel] - y[sel].mean()
-        x[sel], y[sel], th[sel] = ct * xs - st * ys + cx0[k], st * xs + ct * ys + cy0[k], th[sel] + t
-    return x, y, wrap_pi(th), {"steps": steps, "cost_before": cost0, "cost": cost,
-                               "max_rate": float(np.abs(r).max()) if n_rates else 0.0}
+    return relax_pose_graph(x, y, th, lf, lt, ld, lh, lface, ldt, wp, wt, rate_of, wb if wb.size else None, prior)
 
 
 def map_class(model: dict[str, Any]) -> type:

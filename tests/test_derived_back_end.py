@@ -19,7 +19,7 @@ def test_synthetic_world_a_ring_in_a_small_area():
     assert pc["odometry_bias"] == {"enabled": True, "samples_from": "templates", "forget_s": 5.0,
                                    "bidirectional": False}
     assert pc["odometry_gate"]["radius_m"] == 0.0
-    assert em == {"relaxation": "least_squares", "exp_initial_em_deg": 0.0}
+    assert em == {"relaxation": "bias_walk", "exp_initial_em_deg": 0.0}
 
 
 def test_tuc_corridor_there_and_back_in_a_long_area():

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 import sys
 from pathlib import Path
 
@@ -12,33 +11,22 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 
 from relaxation_models import map_class, parse_model, pose_graph  # noqa: E402
+from test_bias_walk import DT, N, drive_circle  # noqa: E402
 
-from neoslam_stream.algorithms.ratslam.actions import CREATE_EDGE, CREATE_NODE  # noqa: E402
+from neoslam_stream.algorithms.ratslam.actions import CREATE_EDGE  # noqa: E402
 from neoslam_stream.algorithms.ratslam.experience_map import ExperienceMap  # noqa: E402
 from neoslam_stream.evaluation import ape  # noqa: E402
 
 MODELS = ["joint:1", "stretch:1", "walk:10:100", "walk_scaled:0.01:0.001"]
-N, DT, RADIUS = 126, 0.2, 2.0  # one circle in N steps of DT seconds: a regular N-gon
-W = 2 * math.pi / (N * DT)
 
 
 def _circle(cls, bias_at) -> tuple[ExperienceMap, np.ndarray]:
-    """A map of one circle driven with the yaw rate W + bias_at(t), an experience per step and the
-    start recognised at the end; and the experiences' true positions (the same rotate-then-advance
-    integration without the bias, so that a map without bias closes exactly)."""
+    """A map of one circle (tests/test_bias_walk.py's drive_circle) with the start recognised at
+    the end, and the experiences' true positions."""
     em = cls(exp_initial_em_deg=0, relaxation="least_squares")
-    em.on_action(CREATE_NODE, 0, 0, 0.0)
-    truth, x, y, th = [(0.0, 0.0)], 0.0, 0.0, 0.0
-    step = 2 * RADIUS * math.sin(W * DT / 2) / DT  # speed whose chord per step lies on the circle
-    for k in range(1, N + 1):
-        em.on_odo(step, W + bias_at(k * DT), DT)
-        th += W * DT
-        x, y = x + step * DT * math.cos(th), y + step * DT * math.sin(th)
-        if k < N:
-            em.on_action(CREATE_NODE, k - 1, k, 0.0)
-            truth.append((x, y))
+    truth = drive_circle(em, bias_at)
     em.on_action(CREATE_EDGE, N - 1, 0, 0.0)  # back at the start, facing as then
-    return em, np.array(truth)
+    return em, truth
 
 
 def test_a_map_whose_links_agree_is_left_as_it_is():

@@ -61,7 +61,7 @@ class PoseCellsNode(Node):
         except InvalidInput as exc:
             raise StageInputError(str(exc)) from None
         data = {"action": a.action, "src_id": a.src_id, "dst_id": a.dst_id, "relative_rad": a.relative_rad,
-                "vtrans": a.vtrans, "vrot": a.vrot, "dt": a.dt}
+                "vtrans": a.vtrans, "vrot": a.vrot, "dt": a.dt, "bias_wander": a.bias_wander}
         base = via if via is not None else msg
         out = base.derive(POSE_CELL_ACTION, data)
         out.frame, out.stamp = msg.frame, msg.stamp
@@ -181,7 +181,7 @@ class ExperienceMapNode(Node):
         # the topic's schema guarantees finite vtrans, vrot and dt (messages from the bus are
         # validated on decoding; those from a node in the same process are ours)
         action = Action(int(d["action"]), int(d["src_id"]), int(d["dst_id"]), float(d.get("relative_rad", 0.0)),
-                        float(d["vtrans"]), float(d["vrot"]), float(d["dt"]))
+                        float(d["vtrans"]), float(d["vrot"]), float(d["dt"]), float(d.get("bias_wander", 0.0)))
         try:
             p = integrate(self.em, action, msg.stamp)
         except InvalidInput as exc:

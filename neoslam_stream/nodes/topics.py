@@ -44,12 +44,12 @@ VISUAL_TEMPLATE = Topic("visual_template", {
 })
 #: The pose cells' output, one per odometry sample: the action for the experience map and the
 #: odometry it integrates, so that the map needs no other topic and dead reckoning stays in the
-#: same order as the actions
+#: same order as the actions; and the yaw-rate bias's measured wander (the map's bias_walk)
 POSE_CELL_ACTION = Topic("pose_cells/action", {
     "action": Field("int"), "src_id": Field("int"), "dst_id": Field("int"),
     "relative_rad": Field("float", optional=True, finite=True),
     "vtrans": Field("float", finite=True), "vrot": Field("float", finite=True),
-    "dt": Field("float", finite=True),
+    "dt": Field("float", finite=True), "bias_wander": Field("float", optional=True, finite=True),
 })
 #: The experience map's pose of the robot after each action (x, y, theta), its experience, and the
 #: pose in that experience's frame (dx, dy, dtheta: ExperienceMap.local_pose)

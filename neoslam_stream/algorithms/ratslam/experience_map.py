@@ -7,7 +7,9 @@ that displacement and links them; CREATE_EDGE links the current experience to an
 duplicate in either direction); both make the destination current (heading = its heading +
 relative_rad). After every action ``exp_loops`` Gauss-Seidel sweeps in node and link order pull
 both ends of each link by ``exp_correction`` of its position and heading error; or, with
-``relaxation: least_squares``, each new loop link re-solves the whole map exactly (graph_solve.py).
+``relaxation: least_squares``, each new loop link re-solves the whole map exactly (graph_solve.py);
+with ``bias_walk``, as a pose graph whose yaw-rate bias wanders as far as the run measured
+(pose_graph.py).
 
 ``openratslam_compat=True`` keeps three C++ quirks that the default fixes (marked "fix n" below,
 tabled in docs/ratslam.md). The map maps the pose cells' experience ids onto its own indices, so a
@@ -29,6 +31,7 @@ from ..errors import InvalidInput
 from .actions import CREATE_EDGE, CREATE_NODE, SET_NODE
 from .angles import clip_pi
 from .graph_solve import relax_least_squares
+from .pose_graph import bias_walk_weights, relax_pose_graph
 
 
 class ExperienceMapConfig(BaseModel):
@@ -47,13 +50,20 @@ class ExperienceMapConfig(BaseModel):
     #: ``sweeps``: OpenRatSLAM's exp_loops sweeps after every action; ``least_squares``: after an
     #: action that adds a loop link, the headings and positions that agree best with every link,
     #: solved exactly (graph_solve.py), and nothing after the others, whose new experience lies
-    #: where its link says; exp_loops and exp_correction are then unused
-    relaxation: Literal["sweeps", "least_squares"] = "sweeps"
+    #: where its link says; exp_loops and exp_correction are then unused; ``bias_walk``: as
+    #: least_squares, then a pose graph with a yaw-rate bias per link in a random walk whose step
+    #: variance is the wander the bias estimator measured (pose_graph.py; least squares until the
+    #: run has measured one, and always without the estimator)
+    relaxation: Literal["sweeps", "least_squares", "bias_walk"] = "sweeps"
+    #: bias_walk: a link's position error (sd) as a fraction of its length
+    walk_position_rel: float = Field(0.05, gt=0)
+    #: bias_walk: a link's heading error variance per second of its duration, rad^2/s
+    walk_heading_var: float = Field(2e-4, gt=0)
 
     @model_validator(mode="after")
     def _robust_needs_sweeps(self) -> ExperienceMapConfig:
-        if self.relaxation == "least_squares" and self.exp_robust_m > 0:
-            raise ValueError("exp_robust_m weights the sweeps' pulls; relaxation least_squares has none "
+        if self.relaxation != "sweeps" and self.exp_robust_m > 0:
+            raise ValueError(f"exp_robust_m weights the sweeps' pulls; relaxation {self.relaxation} has none "
                              "(set exp_robust_m: 0 or relaxation: sweeps)")
         return self
 
@@ -172,6 +182,8 @@ class ExperienceMap:
         self.accum_facing = math.radians(self.config.exp_initial_em_deg)
         self.relax_time_s = 0.0
         self.repaired_actions = 0
+        #: the yaw-rate bias's wander (rad^2/s^3) the bias estimator measured; 0: not measured
+        self.bias_wander = 0.0
         self._loop_linked = False  # a link to an experience that existed: least squares re-solves
 
     @property
@@ -316,17 +328,24 @@ class ExperienceMap:
 
     def iterate(self) -> None:
         """One relaxation: exp_loops sequential sweeps with exp_correction (numba), or with
-        ``relaxation: least_squares`` the exact solve when a loop link came since the last one."""
-        least_squares = self.config.relaxation == "least_squares"
-        if self._m == 0 or (not least_squares and self.config.exp_loops == 0):
+        ``relaxation: least_squares`` (``bias_walk``) the exact solve (the pose graph) when a loop
+        link came since the last one."""
+        solve = self.config.relaxation != "sweeps"  # least_squares or bias_walk: after a loop link only
+        if self._m == 0 or (not solve and self.config.exp_loops == 0):
             return
-        if least_squares and not self._loop_linked:
+        if solve and not self._loop_linked:
             return
         t0 = time.perf_counter()
         nodes = self._nodes
         x, y, th = nodes[: self._n, 0].copy(), nodes[: self._n, 1].copy(), nodes[: self._n, 2].copy()
         lf, lv = self._lf[: self._m], self._lv[: self._m]
-        if least_squares:
+        if solve and self.config.relaxation == "bias_walk" and self.bias_wander > 0:
+            self._loop_linked = False
+            weights = bias_walk_weights(lv[:, 0], lv[:, 3], self.config.walk_position_rel,
+                                        self.config.walk_heading_var, self.bias_wander)
+            x, y, th, _ = relax_pose_graph(x, y, th, lf[:, 0], lf[:, 1], lv[:, 0], lv[:, 1], lv[:, 2], lv[:, 3],
+                                           weights[0], weights[1], np.arange(self._m), weights[2])
+        elif solve:
             self._loop_linked = False
             x, y, th = relax_least_squares(x, y, th, lf[:, 0], lf[:, 1], lv[:, 0], lv[:, 1], lv[:, 2])
         else:

@@ -13,11 +13,17 @@ than ``max_residual_rad_s`` from b is an outlier. Samples come from the pose cel
 experience (``samples_from: actions``) or from every recognised template (``templates``: a
 look-alike faces the same way, so it measures the heading too). ``enabled: false`` (the default,
 OpenRatSLAM) passes the odometry through. Study and figures: docs/mapping.md.
+
+How far b wanders is the robot's own (a gyro's random walk, a gearbox warming up), and the map's
+``bias_walk`` relaxation needs it: :attr:`YawBiasEstimator.wander` is the mean of
+(b_i - b_j)^2 / (t_i - t_j) over the samples i, j the latest earlier sample at least ``min_gap_s``
+before (a random walk's variance per second, rad^2/s^3), 0 until the first such pair.
 """
 
 from __future__ import annotations
 
 import math
+from collections import deque
 from typing import Any, Literal
 
 import numpy as np
@@ -63,6 +69,15 @@ class YawBiasEstimator:
         self._last_sample_t = 0.0
         self.samples = 0
         self.outliers = 0
+        #: (t, b) after each sample since the latest one at least min_gap_s old, and the wander's sums
+        self._history: deque[tuple[float, float]] = deque()
+        self._sum_q = 0.0
+        self._pairs = 0
+
+    @property
+    def wander(self) -> float:
+        """How fast b wanders, rad^2/s^3 (module docstring); 0 while not measured."""
+        return self._sum_q / self._pairs if self._pairs else 0.0
 
     @property
     def enabled(self) -> bool:
@@ -119,6 +134,17 @@ class YawBiasEstimator:
         self._sum_gg += gap * gap
         self.samples += 1
         self.bias = self._sum_dg / self._sum_gg
+        self._note_wander()
+
+    def _note_wander(self) -> None:
+        """Pair the new estimate with the latest one at least min_gap_s older (module docstring)."""
+        then, hist = self.t - self.config.min_gap_s, self._history
+        while len(hist) > 1 and hist[1][0] <= then:
+            hist.popleft()
+        if hist and hist[0][0] <= then and self.t > hist[0][0]:
+            self._sum_q += (self.bias - hist[0][1]) ** 2 / (self.t - hist[0][0])
+            self._pairs += 1
+        hist.append((self.t, self.bias))
 
     def _wrap(self, a: float) -> float:
         """a wrapped into (-pi, pi] (clip_pi), or into (-pi/2, pi/2] when bidirectional (modulo pi)."""
@@ -133,13 +159,18 @@ class YawBiasEstimator:
 
     def state_dict(self) -> dict[str, Any]:
         return {"scalars": [self.bias, self.heading, self.t, self._sum_dg, self._sum_gg, self._last_sample_t,
-                            self.samples, self.outliers],
+                            self.samples, self.outliers, self._sum_q, self._pairs],
                 "last_template": self.last_template,
+                "history": np.array(self._history, dtype=np.float64).reshape(-1, 2),
                 "born": np.array([(k, h, t) for k, (h, t) in self.born.items()], dtype=np.float64).reshape(-1, 3)}
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
+        scalars = [float(v) for v in st["scalars"]]
+        scalars += [0.0] * (10 - len(scalars))  # a checkpoint from before the wander: not measured
         (self.bias, self.heading, self.t, self._sum_dg, self._sum_gg, self._last_sample_t,
-         samples, outliers) = (float(v) for v in st["scalars"])
-        self.samples, self.outliers = int(samples), int(outliers)
+         samples, outliers, self._sum_q, pairs) = scalars[:10]
+        self.samples, self.outliers, self._pairs = int(samples), int(outliers), int(pairs)
+        self._history = deque((float(t), float(b)) for t, b in np.asarray(st.get("history", np.zeros((0, 2))),
+                                                                          dtype=np.float64).reshape(-1, 2))
         self.last_template = int(st.get("last_template", -1))  # absent from older checkpoints
         self.born = {int(k): (float(h), float(t)) for k, h, t in np.asarray(st["born"], dtype=np.float64).reshape(-1, 3)}

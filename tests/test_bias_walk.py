@@ -65,6 +65,28 @@ def test_the_weights_are_inverse_variances_of_each_link():
     np.testing.assert_allclose(wp, [1 / 0.05 ** 2, 1 / 0.5 ** 2, 1 / 1.0 ** 2])
     np.testing.assert_allclose(wt, [1 / 0.005, 1 / 0.01, 1 / 0.015])
     np.testing.assert_allclose(wb, [1 / (1e-4 * 0.75), 1 / (1e-4 * 1.25)])
+    # a map of turns on the spot only (median length 0): read as 1 mm, a finite weight
+    wp, _, _ = bias_walk_weights(np.zeros(3), ldt, position_rel=0.5, heading_var=0.01, wander=1e-4)
+    np.testing.assert_allclose(wp, 1 / (0.5 * 1e-3) ** 2)
+
+
+def test_bias_walk_solves_a_map_of_turns_on_the_spot():
+    # four experiences a quarter turn apart on the spot, the last linked back to the first with
+    # a heading 0.1 rad off: finite poses, all still at the origin
+    em = ExperienceMap(exp_initial_em_deg=0, relaxation="bias_walk")
+    em.bias_wander = 1e-4
+    em.on_action(CREATE_NODE, 0, 0, 0.0)
+    for k in range(1, 4):
+        em.on_odo(0.0, math.pi / 2, 1.0)
+        em.on_action(CREATE_NODE, k - 1, k, 0.0)
+    em.on_odo(0.0, math.pi / 2 + 0.1, 1.0)
+    em.on_action(CREATE_EDGE, 3, 0, 0.0)
+    assert np.isfinite(np.c_[em.x, em.y, em.th]).all()
+    np.testing.assert_allclose(np.c_[em.x, em.y], 0.0, atol=1e-9)
+    # the links measured three quarter turns and a quarter turn + 0.1 rad: each now turns by its
+    # measurement less a quarter of the 0.1 rad misclosure (equal durations, equal shares)
+    turns = np.angle(np.exp(1j * (np.r_[em.th[1:], em.th[0]] - em.th)))
+    np.testing.assert_allclose(turns, np.array([0, 0, 0, 0.1]) + math.pi / 2 - 0.025, atol=1e-6)
 
 
 def drive_circle(em: ExperienceMap, bias_at) -> np.ndarray:

@@ -34,8 +34,10 @@ RATE_PRIOR = 1e-6
 #: Gauss-Newton steps at most (each re-factorises the normal equations)
 MAX_STEPS = 30
 #: a link's length and duration are read as at least this fraction of the map's median, so that a
-#: turn on the spot (d = 0) or two experiences in one odometry step do not get an infinite weight
+#: turn on the spot (d = 0) or two experiences in one odometry step do not get an infinite weight,
+#: and never as less than 1 mm and 1 ms (a map of turns on the spot only: a median of 0)
 FLOOR_OF_MEDIAN = 0.1
+MIN_LENGTH_M, MIN_DURATION_S = 1e-3, 1e-3
 
 
 def bias_walk_weights(ld: np.ndarray, ldt: np.ndarray, position_rel: float, heading_var: float,
@@ -43,9 +45,8 @@ def bias_walk_weights(ld: np.ndarray, ldt: np.ndarray, position_rel: float, head
     """Inverse variances per link (position, heading) and per step between consecutive links:
     position sd ``position_rel`` x d, heading variance ``heading_var`` (rad^2/s) x dt, the bias's
     step ``wander`` (rad^2/s^3) x the steps' mean dt."""
-    tiny = np.finfo(float).tiny
-    d = np.maximum(ld, max(FLOOR_OF_MEDIAN * float(np.median(ld)), tiny))
-    t = np.maximum(ldt, max(FLOOR_OF_MEDIAN * float(np.median(ldt)), tiny))
+    d = np.maximum(ld, max(FLOOR_OF_MEDIAN * float(np.median(ld)), MIN_LENGTH_M))
+    t = np.maximum(ldt, max(FLOOR_OF_MEDIAN * float(np.median(ldt)), MIN_DURATION_S))
     return 1.0 / (position_rel * d) ** 2, 1.0 / (heading_var * t), 1.0 / (wander * 0.5 * (t[1:] + t[:-1]))
 
 

@@ -1,14 +1,17 @@
-"""The experience map's relaxation: OpenRatSLAM's sweeps per action against the least-squares solve
+"""The experience map's relaxation: OpenRatSLAM's sweeps per action, the least-squares solve and the
+pose graph with a wandering bias (``bias_walk`` on a grid of its two constants), chosen by a rule
 -> bench/results/relaxation.json.
 
 The pose cells never read the map, so one run of the default per synthetic world gives the map's
-whole input (every odometry step and pose-cell action, and each frame's ground truth); that stream
-is replayed through an ExperienceMap with each relaxation: ``exp_loops`` 20 ... 1000 sweeps per
-action, and ``relaxation: least_squares``. Figures: APE of the per-frame pose (online) and of every
-frame on the final map, after the same SE(2) alignment as ``neoslam evaluate``, and the seconds the
-map took. The TUC corridor (bench/tuc_corridor.py, the default's back end) runs its two halves
-alone. Chosen on the validation parts (synthetic worlds 1, 3, 4; the TUC run's first half),
-reported on the held-out ones (worlds 0 and 2; the second half): docs/mapping.md.
+whole input (every odometry step and pose-cell action with the bias's measured wander, and each
+frame's ground truth); that stream is replayed through an ExperienceMap with each relaxation:
+``exp_loops`` 20 ... 1000 sweeps per action, ``relaxation: least_squares``, and ``bias_walk`` at
+every point of WALK_POSITION_REL x WALK_HEADING_VAR. Figures: APE of the per-frame pose (online)
+and of every frame on the final map, after the same SE(2) alignment as ``neoslam evaluate``, and
+the seconds the map took. The TUC corridor (bench/tuc_corridor.py, the default's back end) runs
+its two halves alone. Chosen by :func:`choose` on the validation parts (synthetic worlds 1, 3, 4;
+the TUC run's first half), reported on the held-out ones (worlds 0 and 2; the second half):
+docs/mapping.md.
 
 Run: ``.venv/bin/python bench/relaxation.py [--worlds 1,3,4,0,2] [--out bench/results/relaxation.json] [--table]``;
 ``--scale`` times one solve of each on larger maps (-> bench/results/relaxation_scale.json).

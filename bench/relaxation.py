@@ -56,8 +56,14 @@ def map_input(seed: int) -> dict[str, Any]:
     calls: list[tuple] = []
     on_odo, on_action = em.on_odo, em.on_action
     em.on_odo = lambda *a: (calls.append(("odo", a)), on_odo(*a))[1]
-    # the bias's wander as integrate() set it before the action (the map's bias_walk reads it)
-    em.on_action = lambda *a: (calls.append(("wander", (em.bias_wander,))), calls.append(("act", a)), on_action(*a))[2]
+
+    def record_action(*a: Any) -> None:
+        # the bias's wander as integrate() set it before the action (the map's bias_walk reads it)
+        calls.append(("wander", (em.bias_wander,)))
+        calls.append(("act", a))
+        on_action(*a)
+
+    em.on_action = record_action
     gt = []
     for f in SyntheticWorldSource(**cfg.source.params):
         slam.step(f.image, odometry=f.odom, stamp=f.stamp, frame=f.frame)

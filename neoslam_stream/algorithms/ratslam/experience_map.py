@@ -339,19 +339,18 @@ class ExperienceMap:
         nodes = self._nodes
         x, y, th = nodes[: self._n, 0].copy(), nodes[: self._n, 1].copy(), nodes[: self._n, 2].copy()
         lf, lv = self._lf[: self._m], self._lv[: self._m]
-        if solve and self.config.relaxation == "bias_walk" and self.bias_wander > 0:
-            self._loop_linked = False
+        if not solve:
+            _relax(x, y, th, np.ascontiguousarray(lf[:, 0]), np.ascontiguousarray(lf[:, 1]),
+                   np.ascontiguousarray(lv[:, 0]), np.ascontiguousarray(lv[:, 1]), np.ascontiguousarray(lv[:, 2]),
+                   self.config.exp_loops, self.config.exp_correction, self.config.exp_robust_m)
+        elif self.config.relaxation == "bias_walk" and self.bias_wander > 0:
             weights = bias_walk_weights(lv[:, 0], lv[:, 3], self.config.walk_position_rel,
                                         self.config.walk_heading_var, self.bias_wander)
             x, y, th, _ = relax_pose_graph(x, y, th, lf[:, 0], lf[:, 1], lv[:, 0], lv[:, 1], lv[:, 2], lv[:, 3],
                                            weights[0], weights[1], np.arange(self._m), weights[2])
-        elif solve:
-            self._loop_linked = False
-            x, y, th = relax_least_squares(x, y, th, lf[:, 0], lf[:, 1], lv[:, 0], lv[:, 1], lv[:, 2])
         else:
-            _relax(x, y, th, np.ascontiguousarray(lf[:, 0]), np.ascontiguousarray(lf[:, 1]),
-                   np.ascontiguousarray(lv[:, 0]), np.ascontiguousarray(lv[:, 1]), np.ascontiguousarray(lv[:, 2]),
-                   self.config.exp_loops, self.config.exp_correction, self.config.exp_robust_m)
+            x, y, th = relax_least_squares(x, y, th, lf[:, 0], lf[:, 1], lv[:, 0], lv[:, 1], lv[:, 2])
+        self._loop_linked = False  # solved (the sweeps never read it)
         nodes[: self._n, 0], nodes[: self._n, 1], nodes[: self._n, 2] = x, y, th
         self.relax_time_s = time.perf_counter() - t0
 

@@ -7,7 +7,7 @@ frame re-expressed on the final map), {name}_precision / _recall / _closures (a 
 when the frame where what it matched was first seen lies within ``closure_radius_m`` = 1 m of the
 frame's true position: ``neoslam evaluate``'s rule), {name}_precision_by_template (the matched
 template's first frame instead); odometry_mean_m, frames, fps_lossless, per-stage tau, the ratios
-to odometry, and ``targets_issue14``: the mapping targets and which this run reached (the Nordland
+to odometry, and ``targets``: the mapping targets and which this run reached (the Nordland
 row comes from the generalisation.json beside ``--out``, see ``bench/generalisation.py``). Also
 writes e2e_map.png. ``--inprocess``: the in-process API's cores instead of the processes of
 ``neoslam run`` (no zenoh; the same templates and poses as a lossless run), for a loaded machine.
@@ -127,11 +127,11 @@ def main() -> None:
     res["paper_neoslam_ape_vs_odometry"] = res["paper_neoslam_mean_m"] / res["odometry_mean_m"]
     if "neoslam_map_trajectory_mean_m" in res:
         res["neoslam_map_trajectory_vs_odometry"] = res["neoslam_map_trajectory_mean_m"] / res["odometry_mean_m"]
-    res["targets_issue14"] = targets_reached(res)
+    res["targets"] = targets_reached(res)
     gen = out / "generalisation.json"  # the Nordland row comes from bench/generalisation.py
     if gen.exists() and "nordland:0" in (g := json.loads(gen.read_text())).get("test", {}):
         nd = g["test"]["nordland:0"]["default"]
-        t = res["targets_issue14"]
+        t = res["targets"]
         t["nordland_precision_min"], t["nordland_recall_min"] = 0.9, 0.2
         t["nordland"] = {**{k: nd[k] for k in ("precision", "recall", "closures", "correct")},
                          "measured_by": "bench/generalisation.py (generalisation.json test nordland:0, the default)"}

@@ -184,17 +184,17 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="fewer repetitions, smaller Nordland subset")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "frontend.json"))
-    ap.add_argument("--issue16", action="store_true",
+    ap.add_argument("--storage-and-real-sdrs", action="store_true",
                     help="only the storage and real-SDR measurements (B storage, D on real SDRs, float16 "
                          "agreement), merged into --out")
     ap.add_argument("--part", choices=["b", "d"],
-                    help="with --issue16: only B (storage timings and agreement) or only D (real and random SDRs)")
+                    help="with --storage-and-real-sdrs: only B (storage timings and agreement) or only D (real and random SDRs)")
     ap.add_argument("--timing-only", action="store_true",
                     help="re-measure A, B, D and keep the Nordland results already in --out")
     args = ap.parse_args()
     reps = 10 if args.quick else 30
     previous = json.loads(Path(args.out).read_text()) if Path(args.out).exists() else {}
-    if args.issue16:
+    if args.storage_and_real_sdrs:
         import real_sdrs
 
         res = dict(previous)

@@ -7,7 +7,7 @@ tuc_map_mean_m (the TU Chemnitz corridor run of bench/tuc_corridor.py with bench
 rigid 2-D alignment), plus details and ``tuc_first_point`` (the same errors with the NeoSLAM
 authors' first-point alignment), ``tuc_first_point_rotated`` (the same with the rotation about the
 first point fitted); tuc_paper_map_mean_m / ``tuc_paper`` (the corridor with
-bench/settings/tuc_paper.yaml, before the mapping levers) and ``tuc_target_issue14`` (map error over
+bench/settings/tuc_paper.yaml, before the mapping levers) and ``tuc_target`` (map error over
 odometry's, target <= 0.30).
 Run: ``.venv/bin/python bench/ratslam.py [--out FILE]``.
 """
@@ -107,7 +107,7 @@ def main() -> None:
                     "tuc_paper": {k: v for k, v in p.items() if not hasattr(v, "shape")}})
         pr = first_point_rotated_error(p["est"][:, 1:], p["gt"])
         res["tuc_first_point_rotated"]["paper_map_mean_m"] = float(pr.mean())
-        res["tuc_target_issue14"] = {
+        res["tuc_target"] = {
             "map_over_odometry": r["map_mean_m"] / r["odometry_mean_m"], "target": "<= 0.30",
             "reached": r["map_mean_m"] <= 0.3 * r["odometry_mean_m"],
             "paper_map_over_odometry": p["map_mean_m"] / p["odometry_mean_m"]}

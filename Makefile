@@ -46,9 +46,6 @@ bench: setup
 	$(BIN)/neoslam bench throughput --rates 30,45,60 --duration 30 --topology both --out bench/results/throughput_default
 	$(BIN)/python bench/stage_a.py
 	$(BIN)/python bench/cores.py
-	$(BIN)/python bench/projector_paths.py
-	$(BIN)/python bench/relaxation.py
-	$(BIN)/python bench/passes.py
 	$(BIN)/python bench/soak.py --backbone random_alexnet
 	$(BIN)/python bench/soak.py --out bench/results/soak_default.json
 

@@ -10,7 +10,7 @@ summer pass; recall = correct closures / winter frames. Protocol (docs/frontend.
 ``min_std``: tunnels, night) left out of both passes; ``theta_sigma`` None in a parameter set:
 calibrated on the summer pass alone (a percentile of the overlaps between summer frames more than
 ``tolerance`` apart). The protocol's constants: bench/settings/nordland.yaml.
-Used by bench/frontend.py, bench/maps.py, bench/streams.py and tests/test_frontend_nordland.py.
+Used by bench/frontend.py, studies/maps.py, bench/streams.py and tests/test_frontend_nordland.py.
 """
 
 from __future__ import annotations

@@ -1,21 +1,18 @@
 """Real pipeline data for the front-end bench: features, bits, SDRs and templates of the synthetic
 world recorded from the NeoSLAM front end, and what reduced-precision storage (float16, int8) of
-B's matrix changes on them and on Nordland.
+B's matrix changes on them and on Nordland. A protocol of ``bench/frontend.py
+--storage-and-real-sdrs``, which runs it and merges its figures into frontend.json.
 
 ``record_synthetic`` runs the front end of ``load_config("default")`` (A, B, C, D exactly as
 ``neoslam run`` configures them, one frame at a time as the in-process API steps them) over one
 route of the embedded synthetic world and keeps every frame's A features, B bits, C winner cells
 and D result. The recording is cached in /tmp (A's features are 88 kB a frame, too large for
 bench/results); it is regenerated when absent.
-
-Run alone: ``.venv/bin/python bench/real_sdrs.py`` (prints the float16 and int8 agreement figures).
 """
 
 from __future__ import annotations
 
-import json
 import os
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -146,14 +143,6 @@ def storage_nordland(step: int = 4, dtype: str = "float16") -> dict[str, Any]:
     res["templates_identical"] = bool(np.array_equal(tids["float32"][0], tids[dtype][0]))
     res["loop_closure_frames_identical"] = bool(np.array_equal(tids["float32"][1], tids[dtype][1]))
     return res
-
-
-if __name__ == "__main__":
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    r = record_synthetic()
-    print(json.dumps({dtype: {"synthetic": storage_synthetic(r, dtype), "nordland": storage_nordland(4, dtype)}
-                      for dtype in ("float16", "int8", "int8_7bit")}, indent=2))
 
 
 def grow_index(cells: list[np.ndarray], k_target: int, swap: float = 0.05, seed: int = 0) -> tuple[Any, list]:

@@ -128,10 +128,10 @@ def lost_by_row(lost: list[int], rows: list[dict]) -> None:
 
 
 def passes(run_dir: Path) -> list[dict]:
-    """Frames, loop closures (all, and in the stretch every pass revisits: bench/passes.py's
+    """Frames, loop closures (all, and in the stretch every pass revisits: bench/streams.py's
     STRETCH), new templates and the frames lost (``lost_frames``: missing from templates.csv; what
-    ``bench/passes.py --lost-from`` replays) in each pass of the looped synthetic route."""
-    from passes import STRETCH
+    ``studies/passes.py --lost-from`` replays) in each pass of the looped synthetic route."""
+    from streams import STRETCH
 
     cfg = yaml.safe_load((run_dir / "config.yaml").read_text())
     if cfg["source"]["kind"] != "synthetic" or not (run_dir / "templates.csv").exists():

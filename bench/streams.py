@@ -24,6 +24,9 @@ from neoslam_stream.config import load_config
 
 RADIUS_M = 1.0
 REVISIT_TRAVEL_M = 5.0
+#: frames 800-2400 of each pass of the default's looped synthetic route: the stretch every pass
+#: revisits (the closures per pass of bench/soak.py and studies/passes.py)
+STRETCH = (800, 2400)
 
 
 @dataclass

@@ -8,7 +8,7 @@ earlier frame (at least ``min_gap_s`` earlier, similarity >= ``threshold``) exis
 frame's template id (a place recognised), otherwise it gets a new id. The error of the
 experience-map trajectory and of odometry alone is measured against the 2-D ground truth after
 the same rigid 2-D alignment (rotation + translation, least squares) of each. Settings:
-bench/settings/tuc.yaml and tuc_paper.yaml. Used by bench/ratslam.py, bench/maps.py and
+bench/settings/tuc.yaml and tuc_paper.yaml. Used by bench/ratslam.py, studies/maps.py and
 tests/test_ratslam_tuc.py.
 """
 
@@ -143,7 +143,7 @@ def run(pose_cells: dict, experience_map: dict, threshold: float = 0.8, min_gap_
     ``sequence``: see :func:`templates_from_loops`. ``map_on_final_mean_m``: the error of every
     step re-expressed on the final map (as trajectory_map.tum). ``start_s`` / ``limit_s``: a run
     of that part of the recording alone (:func:`load`), e.g. the half that chose no constant.
-    ``map_cls``: the experience map's class (bench/relaxation_models.py measures others)."""
+    ``map_cls``: the experience map's class (studies/relaxation_models.py measures others)."""
     odom, loops, gt = load(limit_s, start_s)
     ids = templates_from_loops(loops, threshold, min_gap_s, sequence)
     frame_times = np.array(sorted(ids))

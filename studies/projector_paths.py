@@ -4,31 +4,28 @@ The default's B (float32 Gaussian projection) against int8 storage with 7-bit fe
 (``projector.matrix_dtype: int8``, ``feature_bits: 7``: 0.29x its time per frame,
 docs/performance.md), each on every part of bench/generalisation.py (validation and held-out),
 with everything else the shipped default: loop-closure figures through B, C and D from the same
-cached A features. Writes bench/results/projector_paths.json.
+cached A features. Writes studies/results/projector_paths.json.
 
-Run: ``.venv/bin/python bench/projector_paths.py [--out bench/results/projector_paths.json]``.
+Run: ``.venv/bin/python studies/projector_paths.py [--out studies/results/projector_paths.json]``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(ROOT / "bench"), str(ROOT)]
+import _paths  # the package and bench/ on sys.path
+import generalisation as G
 
-import generalisation as G  # noqa: E402
-
-from neoslam_stream.config import load_config  # noqa: E402
+from neoslam_stream.config import load_config
 
 PATHS = {"float32": {}, "int8_7bit": {"matrix_dtype": "int8", "feature_bits": 7}}
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "projector_paths.json"))
+    ap.add_argument("--out", default=str(_paths.RESULTS / "projector_paths.json"))
     args = ap.parse_args()
     res = {}
     for part in G.PARTS["validation"] + G.PARTS["test"]:

@@ -1,6 +1,6 @@
 """The experience map's relaxation: OpenRatSLAM's sweeps per action, the least-squares solve and the
 pose graph with a wandering bias (``bias_walk`` on a grid of its two constants), chosen by a rule
--> bench/results/relaxation.json.
+-> studies/results/relaxation.json.
 
 The pose cells never read the map, so one run of the default per synthetic world gives the map's
 whole input (every odometry step and pose-cell action with the bias's measured wander, and each
@@ -13,25 +13,23 @@ its two halves alone. Chosen by :func:`choose` on the validation parts (syntheti
 the TUC run's first half), reported on the held-out ones (worlds 0 and 2; the second half):
 docs/mapping.md.
 
-Run: ``.venv/bin/python bench/relaxation.py [--worlds 1,3,4,0,2] [--out bench/results/relaxation.json] [--table]``;
-``--scale`` times one solve of each on larger maps (-> bench/results/relaxation_scale.json).
+Run: ``.venv/bin/python studies/relaxation.py [--worlds 1,3,4,0,2] [--out studies/results/relaxation.json] [--table]``;
+``--scale`` times one solve of each on larger maps (-> studies/results/relaxation_scale.json).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
+import _paths  # the package and bench/ on sys.path
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).parent))
-
-from neoslam_stream.algorithms.ratslam.experience_map import ExperienceMap, poses_on_map  # noqa: E402
-from neoslam_stream.evaluation import ape  # noqa: E402
+from neoslam_stream.algorithms.ratslam.experience_map import ExperienceMap, poses_on_map
+from neoslam_stream.evaluation import ape
 
 SWEEPS = (20, 50, 100, 200, 300, 500, 1000)
 #: bias_walk's grid: a link's position sd per metre of it, its heading variance per second (rad^2/s)
@@ -185,7 +183,7 @@ def solve_cost(sizes: tuple[int, ...] = (1000, 5000, 20000)) -> list[dict[str, A
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--worlds", default="1,3,4,0,2", help="synthetic worlds (seeds), comma-separated")
-    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "relaxation.json"))
+    ap.add_argument("--out", default=str(_paths.RESULTS / "relaxation.json"))
     ap.add_argument("--table", action="store_true", help="print docs/mapping.md's table from --out and stop")
     ap.add_argument("--scale", action="store_true",
                     help="only time one solve of each on maps of 1000-20000 experiences -> relaxation_scale.json")

@@ -1,5 +1,5 @@
 """Solves of the experience map beside the least squares, measured before the default's
-``bias_walk`` existed -> bench/results/relaxation_models.json (docs/mapping.md: "A pose-graph solve",
+``bias_walk`` existed -> studies/results/relaxation_models.json (docs/mapping.md: "A pose-graph solve",
 "A wandering bias in the solve").
 
 The least-squares solve (``relaxation: least_squares``, algorithms/ratslam/graph_solve.py) takes the
@@ -17,29 +17,27 @@ pose_graph.py) over the same links, with its own weights and rates:
 * ``walk_scaled:SW:SB``: the walk with a random walk's variances: position 1 / (d + median d),
   heading 1 / (SW (dt + median dt)), a bias step 1 / (SB (dt + median dt)).
 
-Replayed on the inputs of bench/relaxation.py: the default's map input, recorded once per
+Replayed on the inputs of studies/relaxation.py: the default's map input, recorded once per
 synthetic world, and the TUC corridor's halves run alone with the default's back end. Nothing is
 chosen here: the relaxation's rule (docs/mapping.md) never saw these candidates before it ran.
 
-Run: ``.venv/bin/python bench/relaxation_models.py [--models joint:1,walk:10:100] [--worlds 1,3,4,0,2]
-[--tuc first,second] [--out bench/results/relaxation_models.json]``.
+Run: ``.venv/bin/python studies/relaxation_models.py [--models joint:1,walk:10:100] [--worlds 1,3,4,0,2]
+[--tuc first,second] [--out studies/results/relaxation_models.json]``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
+import _paths  # the package and bench/ on sys.path
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).parent))
-
-from neoslam_stream.algorithms.ratslam.experience_map import ExperienceMap  # noqa: E402
-from neoslam_stream.algorithms.ratslam.pose_graph import RATE_PRIOR, relax_pose_graph  # noqa: E402
+from neoslam_stream.algorithms.ratslam.experience_map import ExperienceMap
+from neoslam_stream.algorithms.ratslam.pose_graph import RATE_PRIOR, relax_pose_graph
 
 DEFAULT_MODELS = ("joint:1,joint:3,stretch:1,walk:10:100,walk:10:100:1,walk_scaled:0.01:0.001,walk_scaled:0.1:0.01,"
                   "walk_scaled:0.1:0.001")
@@ -122,7 +120,7 @@ def main() -> None:
     ap.add_argument("--models", default=DEFAULT_MODELS, help="comma-separated model specs")
     ap.add_argument("--worlds", default="1,3,4,0,2", help="synthetic worlds (seeds), comma-separated")
     ap.add_argument("--tuc", default="first,second", help="TUC halves to run ('' for none)")
-    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "relaxation_models.json"))
+    ap.add_argument("--out", default=str(_paths.RESULTS / "relaxation_models.json"))
     args = ap.parse_args()
     models = [parse_model(s) for s in args.models.split(",") if s]
     cases: list[tuple[str, Any]] = [(f"synthetic:{s}", int(s)) for s in args.worlds.split(",") if s]

@@ -8,9 +8,9 @@ and frozen like the default's ``features.inference: frozen``. Reported on held-o
 float and int8 networks interleaved), the cosine between the int8 and the float features of the
 same frame, the share of B's bits they have in common (B without centring), and place recognition
 by A's features alone: recall@1 of Nordland's winter frames against its summer frames by cosine
-(the issue's measure for what the stages keep of A). Writes bench/results/stage_a_int8.json.
+(the issue's measure for what the stages keep of A). Writes studies/results/stage_a_int8.json.
 
-Run: ``.venv/bin/python bench/stage_a_int8.py [--out bench/results/stage_a_int8.json]``.
+Run: ``.venv/bin/python studies/stage_a_int8.py [--out studies/results/stage_a_int8.json]``.
 """
 
 from __future__ import annotations
@@ -18,23 +18,19 @@ from __future__ import annotations
 import argparse
 import copy
 import json
-import sys
 import time
 import warnings
 from pathlib import Path
 
+import _paths  # the package and bench/ on sys.path
 import numpy as np
+from bench_settings import load_settings
+from nordland import load_frames
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path[:0] = [str(ROOT), str(ROOT / "bench")]
-
-from bench_settings import load_settings  # noqa: E402
-from nordland import load_frames  # noqa: E402
-
-from neoslam_stream.algorithms.features import VisualFeatureExtractor  # noqa: E402
-from neoslam_stream.algorithms.projector import BinaryProjector, ProjectorConfig  # noqa: E402
-from neoslam_stream.config import load_config  # noqa: E402
-from neoslam_stream.sources.synthetic import SyntheticWorldSource  # noqa: E402
+from neoslam_stream.algorithms.features import VisualFeatureExtractor
+from neoslam_stream.algorithms.projector import BinaryProjector, ProjectorConfig
+from neoslam_stream.config import load_config
+from neoslam_stream.sources.synthetic import SyntheticWorldSource
 
 
 def world_frames(seed: int, n: int, step: int) -> list[np.ndarray]:
@@ -82,7 +78,7 @@ def main() -> int:
     import torch
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "stage_a_int8.json"))
+    ap.add_argument("--out", default=str(_paths.RESULTS / "stage_a_int8.json"))
     args = ap.parse_args()
     torch.set_num_threads(1)
     cfg = load_config("default").features.model_copy(update={"threads": 1})

@@ -1,5 +1,5 @@
 """The yaw-rate bias's forgetting (``pose_cells.odometry_bias.forget_s``), chosen by a rule on
-validation parts and reported on held-out ones -> bench/results/bias_forgetting.json.
+validation parts and reported on held-out ones -> studies/results/bias_forgetting.json.
 
 The back end's input does not depend on the back end: the default's front end is run once per
 synthetic world in-process (its templates, relative rotations, odometry, stamps and ground truth,
@@ -15,7 +15,7 @@ rows are bench/tuc_corridor.py's map error and its final-map error.
 validation part; scores within ``TIE`` of the best tie, won by the longer forgetting. Held out:
 worlds 0 and 2 and the TUC run's second half (docs/mapping.md, "The yaw-rate bias's forgetting").
 
-Run: ``.venv/bin/python bench/bias_forgetting.py [--out bench/results/bias_forgetting.json]``.
+Run: ``.venv/bin/python studies/bias_forgetting.py [--out studies/results/bias_forgetting.json]``.
 """
 
 from __future__ import annotations
@@ -25,24 +25,20 @@ import functools
 import json
 import os
 import pickle
-import sys
 from pathlib import Path
 from typing import Any
 
+import _paths  # the package and bench/ on sys.path
 import numpy as np
+from bench_settings import cache_key
+from relaxation import TEST, VALIDATION  # the back end's parts, as the relaxation's
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from neoslam_stream.algorithms.backend import BackEnd
+from neoslam_stream.algorithms.ratslam.experience_map import poses_on_map
+from neoslam_stream.config import load_config
+from neoslam_stream.evaluation import ape
 
-from bench_settings import cache_key  # noqa: E402
-from relaxation import TEST, VALIDATION  # noqa: E402  (the back end's parts, as the relaxation's)
-
-from neoslam_stream.algorithms.backend import BackEnd  # noqa: E402
-from neoslam_stream.algorithms.ratslam.experience_map import poses_on_map  # noqa: E402
-from neoslam_stream.config import load_config  # noqa: E402
-from neoslam_stream.evaluation import ape  # noqa: E402
-
-RESULTS = Path(__file__).resolve().parent / "results"
+RESULTS = _paths.RESULTS
 CACHE = Path(os.environ.get("NEOSLAM_CACHE", "/tmp/neoslam_generalisation")) / "bias_forgetting"
 FORGET = (5.0, 15.0, 30.0, 60.0, 120.0, 240.0)
 REFERENCE_S = 120.0  # the forgetting the default had before this choice

@@ -1,4 +1,4 @@
-"""The default's spatial-view cells on a route driven again and again -> bench/results/passes.json.
+"""The default's spatial-view cells on a route driven again and again -> studies/results/passes.json.
 
 A robot that patrols revisits each place many times: the map should stop growing once the route is
 known (loop closures, few new templates), and D's index and cost should grow with new places only,
@@ -12,7 +12,7 @@ decisions, checked); the ``*_every_interval_indexed`` figures replay the default
 ``spatial_view.index_revisits: true`` (every interval a candidate, as before revisits stayed out).
 One core, one run: the ratio is the figure.
 
-Run: ``.venv/bin/python bench/passes.py [--passes 10] [--out bench/results/passes.json]``;
+Run: ``.venv/bin/python studies/passes.py [--passes 10] [--out studies/results/passes.json]``;
 ``--lost-from bench/results/soak_default.json`` replays without the frames that soak lost.
 """
 
@@ -23,22 +23,19 @@ import itertools
 import json
 import os
 import pickle
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _paths  # the package and bench/ on sys.path
+from bench_settings import cache_key
+from streams import STRETCH
 
-from bench_settings import cache_key  # noqa: E402
-
-from neoslam_stream.algorithms.frontend import FrontEnd  # noqa: E402
-from neoslam_stream.config import load_config  # noqa: E402
+from neoslam_stream.algorithms.frontend import FrontEnd
+from neoslam_stream.config import load_config
 
 CACHE = Path(os.environ.get("NEOSLAM_CACHE", "/tmp/neoslam_generalisation"))
 RECORDED = 10
-STRETCH = (800, 2400)
 
 
 def cache_path() -> Path:
@@ -106,7 +103,7 @@ def replay(rec: dict[str, Any], passes: int, rows: bool, index_revisits: bool = 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--passes", type=int, default=RECORDED)
-    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "passes.json"))
+    ap.add_argument("--out", default=str(_paths.RESULTS / "passes.json"))
     ap.add_argument("--lost-from", help="a soak's JSON (bench/soak.py): D does not see the frames that run lost "
                                         "(its passes' lost_frames)")
     args = ap.parse_args()

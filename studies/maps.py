@@ -1,6 +1,6 @@
-"""The lever study of the mapping settings -> bench/results/maps.json (docs/levers.md).
+"""The lever study of the mapping settings -> studies/results/maps.json (docs/levers.md).
 
-Each lever of bench/settings/levers.yaml is measured ALONE against the paper profile
+Each lever of studies/settings/levers.yaml is measured ALONE against the paper profile
 (``configs/paper.yaml``) and the kept levers together (the default), on:
 
 * the synthetic world (the full default route, 2445 frames, three laps) through the in-process
@@ -12,7 +12,7 @@ Each lever of bench/settings/levers.yaml is measured ALONE against the paper pro
 
 A's features are computed once per data set and cached in ``$NEOSLAM_CACHE`` (default
 ``/tmp/neoslam_maps``), never in the repository; C's cells are cached per (B, C) configuration.
-Run: ``.venv/bin/python bench/maps.py [--only NAME ...]``.
+Run: ``.venv/bin/python studies/maps.py [--only NAME ...]``.
 """
 
 from __future__ import annotations
@@ -20,33 +20,30 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
+import _paths  # the package and bench/ on sys.path
+import nordland
 import numpy as np
+import tuc_corridor
+import yaml
+from bench_settings import cache_key, check_sections, load_settings
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-import nordland  # noqa: E402
-import tuc_corridor  # noqa: E402
-from bench_settings import cache_key, check_sections, load_settings, read_settings  # noqa: E402
-
-from neoslam_stream.algorithms.frontend import FrontEnd  # noqa: E402
-from neoslam_stream.config import FullRunConfig, load_config  # noqa: E402
-from neoslam_stream.evaluation import evaluate_run, loop_closure_quality  # noqa: E402
-from neoslam_stream.runtime.config import merge_dicts  # noqa: E402
-from neoslam_stream.tum import integrate_odometry, write_tum  # noqa: E402
+from neoslam_stream.algorithms.frontend import FrontEnd
+from neoslam_stream.config import FullRunConfig, load_config
+from neoslam_stream.evaluation import evaluate_run, loop_closure_quality
+from neoslam_stream.runtime.config import merge_dicts
+from neoslam_stream.tum import integrate_odometry, write_tum
 
 CACHE = Path(os.environ.get("NEOSLAM_CACHE", "/tmp/neoslam_maps"))
-RESULTS = Path(__file__).parent / "results"
+RESULTS = _paths.RESULTS
 
 
 def levers() -> dict[str, Any]:
-    """bench/settings/levers.yaml, every lever's sections checked by the run config's models."""
-    lv = read_settings("levers")
+    """studies/settings/levers.yaml, every lever's sections checked by the run config's models."""
+    lv = yaml.safe_load((_paths.SETTINGS / "levers.yaml").read_text())
     for name, over in lv["synthetic"].items():
         check_sections(over, f"levers.yaml synthetic.{name}")
     for i, sv in enumerate(lv["nordland"]["spatial_view"]):

@@ -11,26 +11,21 @@ on the perturbed sparse stand-ins of seeds 6-8 (their second lap under other lig
 stand-in of seed 6, parts that neither choose a constant nor report one (bench/generalisation.py's
 PARTS), and on Nordland's validation subsets 2 and 4 and synthetic world 1. Nothing is chosen from
 it (the light setting the default ships was chosen by bench/generalisation.py's LIGHT_RULE).
-Writes bench/results/equalise.json.
+Writes studies/results/equalise.json.
 
-Run: ``.venv/bin/python bench/equalise.py``.
+Run: ``.venv/bin/python studies/equalise.py``.
 """
 
 from __future__ import annotations
 
 import json
-import sys
 from dataclasses import replace
-from pathlib import Path
 from typing import Any
 
+import _paths  # the package and bench/ on sys.path
 import cv2
+import generalisation as G
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-import generalisation as G  # noqa: E402
 
 PARTS = ["hard:6", "hard:7", "hard:8", "sparse:6", "nordland:2", "nordland:4", "synthetic:1"]
 
@@ -76,7 +71,7 @@ def main() -> None:
     for part in PARTS:
         res["parts"][part] = figures(part)
         print(part, json.dumps(res["parts"][part]), flush=True)
-    path = G.RESULTS / "equalise.json"
+    path = _paths.RESULTS / "equalise.json"
     path.write_text(json.dumps(res, indent=1) + "\n")
     print(f"wrote {path}")
 

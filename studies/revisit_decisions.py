@@ -11,29 +11,25 @@ recent view's level, the stretch's evidence refused, or closed (right or wrong).
 Run on the perturbed sparse stand-ins of seeds 6-8 (their second lap under other light, blur, noise
 and a drifting offset) and the plain ones of the same seeds: parts that neither choose a constant
 nor report one (bench/generalisation.py's PARTS). Nothing is chosen from it. Writes
-bench/results/revisit_decisions.json.
+studies/results/revisit_decisions.json.
 
-Run: ``.venv/bin/python bench/revisit_decisions.py [--parts hard:6,hard:7,hard:8,sparse:6,sparse:7,sparse:8]``.
+Run: ``.venv/bin/python studies/revisit_decisions.py [--parts hard:6,hard:7,hard:8,sparse:6,sparse:7,sparse:8]``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 from collections import Counter
 from pathlib import Path
 from typing import Any
 
+import _paths  # the package and bench/ on sys.path
+import generalisation as G
 import numpy as np
+from streams import RADIUS_M
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-import generalisation as G  # noqa: E402
-from streams import RADIUS_M  # noqa: E402
-
-from neoslam_stream.algorithms.frontend import FrontEnd  # noqa: E402
+from neoslam_stream.algorithms.frontend import FrontEnd
 
 PARTS = ["hard:6", "hard:7", "hard:8", "sparse:6", "sparse:7", "sparse:8"]
 #: where a revisiting frame's decision stopped, in the order the decision takes its steps
@@ -102,7 +98,7 @@ def part_decisions(part: str) -> dict[str, Any]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--parts", default=",".join(PARTS))
-    ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results" / "revisit_decisions.json"))
+    ap.add_argument("--out", default=str(_paths.RESULTS / "revisit_decisions.json"))
     args = ap.parse_args()
     res: dict[str, Any] = {"steps": list(STEPS), "parts": {}}
     for part in args.parts.split(","):

@@ -1,21 +1,15 @@
-"""bench/relaxation_models.py: the pose-graph solves measured beside the shipped least squares."""
+"""studies/relaxation_models.py: the pose-graph solves measured beside the shipped least squares."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
+from relaxation_models import map_class, parse_model, pose_graph
+from test_bias_walk import DT, N, drive_circle
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-
-from relaxation_models import map_class, parse_model, pose_graph  # noqa: E402
-from test_bias_walk import DT, N, drive_circle  # noqa: E402
-
-from neoslam_stream.algorithms.ratslam.actions import CREATE_EDGE  # noqa: E402
-from neoslam_stream.algorithms.ratslam.experience_map import ExperienceMap  # noqa: E402
-from neoslam_stream.evaluation import ape  # noqa: E402
+from neoslam_stream.algorithms.ratslam.actions import CREATE_EDGE
+from neoslam_stream.algorithms.ratslam.experience_map import ExperienceMap
+from neoslam_stream.evaluation import ape
 
 MODELS = ["joint:1", "stretch:1", "walk:10:100", "walk_scaled:0.01:0.001"]
 

@@ -1,14 +1,9 @@
-"""bench/revisit_decisions.py: where a revisiting frame's decision stopped, by the decision's steps."""
+"""studies/revisit_decisions.py: where a revisiting frame's decision stopped, by the decision's steps."""
 
-import sys
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-
-from revisit_decisions import STEPS, recorded, step_of  # noqa: E402
+from revisit_decisions import STEPS, recorded, step_of
 
 Z_MIN = 3.5
 

@@ -91,7 +91,7 @@ def agreement(frames: list[np.ndarray]) -> dict[str, Any]:
     for device in ("cpu", "cuda"):
         fe = front_end(load_config("default").front_end().resolved().features.backbone, device)
         bits = [fe.bits_of_frames([im])[0] for im in frames]
-        tpl = [fe.step_bits(b, float(i)).template for i, b in enumerate(bits)]
+        tpl = [fe.template(fe.cells(b), float(i)) for i, b in enumerate(bits)]
         runs[device] = (bits, tpl)
     (bc, tc), (bg, tg) = runs["cpu"], runs["cuda"]
     bit_diff = [len(np.setxor1d(a, b)) for a, b in zip(bc, bg, strict=True)]

@@ -52,14 +52,16 @@ def record_synthetic(frames: int | None = None, cache: Path | None = CACHE) -> d
     for fr in src:
         if not fe.keep(fr.frame):
             continue
-        f = fe.features([fr.image])  # A then B of one frame, as the API's step runs them
-        res = fe.step_bits(fe.bits(f)[0])
+        f = fe.features([fr.image])  # A, B, C, D of one frame, as the API's step runs them
+        b = fe.bits(f)[0]
+        c = fe.cells(b)
+        t = fe.template(c)
         feats.append(np.asarray(f[0], np.float32))
-        bits.append(np.asarray(res.bits, np.uint16))
-        cells.append(np.asarray(res.cells, np.uint32))
-        ids.append(int(res.template["id"]))
-        loops.append(bool(res.template["is_loop_closure"]))
-        scores.append(int(res.template["best_score"]))
+        bits.append(np.asarray(b, np.uint16))
+        cells.append(np.asarray(c, np.uint32))
+        ids.append(int(t["id"]))
+        loops.append(bool(t["is_loop_closure"]))
+        scores.append(int(t["best_score"]))
     backbone = fe.extractor.backbone
     out = {"features": np.stack(feats), "bits": bits, "cells": cells, "ids": np.asarray(ids),
            "loops": np.asarray(loops), "best_score": np.asarray(scores), "backbone": backbone}
@@ -95,10 +97,11 @@ def storage_synthetic(rec: dict[str, Any], dtype: str = "float16") -> dict[str, 
         fe.warm_up()
         bits, ids, loops = [], [], []
         for f in rec["features"]:
-            r = fe.step_bits(fe.bits(f[None])[0])
-            bits.append(np.asarray(r.bits))
-            ids.append(int(r.template["id"]))
-            loops.append(bool(r.template["is_loop_closure"]))
+            b = fe.bits(f[None])[0]
+            t = fe.template(fe.cells(b))
+            bits.append(np.asarray(b))
+            ids.append(int(t["id"]))
+            loops.append(bool(t["is_loop_closure"]))
         runs[storage] = (bits, np.asarray(ids), np.asarray(loops))
     b32, i32, l32 = runs["float32"]
     b16, i16, l16 = runs[dtype]

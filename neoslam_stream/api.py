@@ -8,13 +8,15 @@
         print(r.frame, r.template_id, r.is_loop_closure, r.pose)
     slam.finish()                                   # writes the run files when run_dir is set
 
-It calls the two cores directly (``algorithms.frontend``, ``algorithms.backend``): the same
-algorithms, in the same order, as the nodes of ``neoslam run``, so the same templates and poses
-as a lossless run of the same frames; the recorder node writes the run folder. No zenoh.
+It calls the two cores directly (``algorithms.frontend``, ``algorithms.backend``): the stages of
+the chain declared in ``nodes/chain.py``, in that order, as the nodes of ``neoslam run`` call
+them, so the same templates and poses as a lossless run of the same frames; the run folder is
+written by the same writer as the recorder node's (``nodes/run_folder.py``). No zenoh.
 """
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,15 +24,28 @@ from typing import Any
 
 import numpy as np
 
-from .algorithms.backend import BackEnd, CameraOdometry, MapPose
+from .algorithms.backend import BackEnd, CameraOdometry
 from .algorithms.errors import InvalidInput
-from .algorithms.frontend import FrontEnd, FrontEndResult, LocalViewFrontEnd
+from .algorithms.frontend import FrontEnd, LocalViewFrontEnd
+from .algorithms.records import MapPose, Template
+from .config import FullRunConfig
 from .nodes.camera import camera_pixels, decode_rgb
-from .runtime.messages import MAX_FRAME, Message, validate_data
-from .runtime.node import StageInputError
+from .nodes.chain import neoslam_chain, run_stage
+from .nodes.run_folder import RunFolder, mcap_params
+from .nodes.topics import BIN_FEATURES, SDR, VISUAL_TEMPLATE
+from .runtime.messages import MAX_FRAME
 
 #: what a step's odometry may be: (vtrans m/s, vrot rad/s, dt s), or a mapping with those keys
 Odometry = tuple[float, float, float] | dict[str, float]
+
+
+@dataclass
+class FrontEndResult:
+    """What NeoSLAM's front end made of one frame: B's on-bits, C's winner cells, D's template."""
+
+    bits: np.ndarray
+    cells: np.ndarray
+    template: Template
 
 
 @dataclass
@@ -41,7 +56,7 @@ class StepResult:
 
     frame: int
     stamp: float
-    template: dict[str, Any] | None = None
+    template: Template | None = None
     pose: np.ndarray | None = None
     exp_id: int | None = None
     #: (frame, pose) of every pose the step produced
@@ -62,7 +77,7 @@ class _SLAM:
 
     pipeline = ""
 
-    def __init__(self, config: Any = None, run_dir: str | os.PathLike | None = None,
+    def __init__(self, config: FullRunConfig | str | Path | None = None, run_dir: str | os.PathLike | None = None,
                  backend: bool = True) -> None:
         """``config``: a :class:`~neoslam_stream.config.FullRunConfig`, the name of a shipped
         config or a YAML path (default: ``default``, what ``neoslam run`` uses). ``run_dir``: write
@@ -81,20 +96,21 @@ class _SLAM:
         self.camera_odometry = None
         if backend and config.odometry == "visual":
             self.camera_odometry = CameraOdometry(config.visual_odometry)
-        self.recorder = None
+        self.run_folder = None
         if self.back_end is not None:
             self.back_end.warm_up()
             if run_dir is not None:
-                self.recorder = _recorder(config, run_dir)
+                os.makedirs(run_dir, exist_ok=True)
+                self.run_folder = RunFolder(os.fspath(run_dir), mcap=mcap_params(config.ros2_out))
         self.frame = -1
         self.last_stamp = 0.0
         self.finished = False
 
-    def _make_front_end(self, config: Any) -> Any:
+    def _make_front_end(self, config: FullRunConfig) -> Any:
         raise NotImplementedError
 
     def _template(self, data: dict[str, Any], frame: int,
-                  stamp: float) -> tuple[dict[str, Any] | None, FrontEndResult | None]:
+                  stamp: float) -> tuple[Template | None, FrontEndResult | None]:
         raise NotImplementedError
 
     def step(self, image: np.ndarray | bytes, odometry: Odometry | None = None, stamp: float | None = None,
@@ -106,15 +122,14 @@ class _SLAM:
         dt s), needed by the back end unless the config uses visual odometry. ``stamp``
         (seconds) defaults to the frame number; ``frame`` to the previous frame + 1.
 
-        Bad input raises a ``ValueError`` naming the cause (``MessageError`` for a malformed
-        image or odometry, ``StageInputError`` for a frame a stage cannot use) and uses up the
-        frame number; the odometry of that frame is still integrated, and the next step works
-        normally. Any other exception is a bug in the code, not in the input.
+        Bad input (a malformed image or odometry, a frame a stage cannot use) raises
+        :class:`~neoslam_stream.algorithms.errors.InvalidInput`, a ``ValueError`` naming the cause,
+        and uses up the frame number; the odometry of that frame is still integrated, and the next
+        step works normally. Any other exception is a bug in the code, not in the input.
         """
         data = _image_data(image, encoding)
 
         def front(res: StepResult) -> tuple[float, float, float | None] | None:
-            validate_data("image", data)
             res.template, res.front = self._template(data, res.frame, res.stamp)
             if self.camera_odometry is not None:
                 return self.camera_odometry.on_frame(camera_pixels(data), res.stamp)
@@ -137,13 +152,10 @@ class _SLAM:
         odo = self._odometry(odometry)
         res = StepResult(frame, stamp)
         try:
-            try:
-                odo = front(res) or odo
-            finally:  # the frame's motion happened, whatever its image was
-                if self.back_end is not None and odo is not None:
-                    self._move(res, odo, stamp)
-        except InvalidInput as exc:  # what a stage cannot use, said as a node says it
-            raise StageInputError(str(exc)) from None
+            odo = front(res) or odo
+        finally:  # the frame's motion happened, whatever its image was
+            if self.back_end is not None and odo is not None:
+                self._move(res, odo, stamp)
         return res
 
     def _odometry(self, odometry: Odometry | None) -> tuple[float, float, float | None] | None:
@@ -156,9 +168,11 @@ class _SLAM:
             v, w, dt = odometry["vtrans"], odometry["vrot"], odometry.get("dt")
         else:
             v, w, dt = odometry
-        data = {"vtrans": float(v), "vrot": float(w), **({} if dt is None else {"dt": float(dt)})}
-        validate_data("odom", data)
-        return data["vtrans"], data["vrot"], data.get("dt")
+        odo = (float(v), float(w), None if dt is None else float(dt))
+        for name, value in zip(("vtrans", "vrot", "dt"), odo, strict=True):
+            if value is not None and not math.isfinite(value):
+                raise InvalidInput(f"odometry {name} {value} is not finite")
+        return odo
 
     def _move(self, res: StepResult, odo: tuple[float, float, float | None], stamp: float) -> None:
         """The back end's step: the frame's template (if it has one), then its odometry."""
@@ -168,11 +182,10 @@ class _SLAM:
         res.pose, res.exp_id = p.pose, p.exp_id
         res.poses.append((res.frame, p.pose))
         self.last_stamp = stamp
-        if self.recorder is not None:
+        if self.run_folder is not None:
             if tmpl is not None:
-                self.recorder.process("visual_template", Message("visual_template", res.frame, stamp, tmpl))
-            self.recorder.process("experience_map/pose", Message(
-                "experience_map/pose", res.frame, stamp, {"pose": p.pose, "exp_id": p.exp_id, "local": p.local}))
+                self.run_folder.on_template(res.frame, stamp, tmpl)
+            self.run_folder.on_pose(res.frame, stamp, p)
 
     def finish(self) -> dict[str, Any] | None:
         """End the stream; with a ``run_dir``, write the files. Returns the final map (None
@@ -182,11 +195,10 @@ class _SLAM:
             return None if self.back_end is None else self.map()
         self.finished = True
         export = self.map()
-        if self.recorder is not None:
-            self.recorder.process("experience_map/map", Message(
-                "experience_map/map", max(self.frame, 0), self.last_stamp, {"export": export}))
-            self.recorder.flush()
-            self.recorder.close()
+        if self.run_folder is not None:
+            self.run_folder.on_map(export)
+            self.run_folder.finish()
+            self.run_folder.close()
         return export
 
     def map(self) -> dict[str, Any]:
@@ -226,32 +238,28 @@ def _image_data(image: np.ndarray | bytes, encoding: str | None) -> dict[str, An
     return {"image": arr, "encoding": encoding or ("mono8" if arr.ndim == 2 else "rgb8")}
 
 
-def _recorder(config: Any, run_dir: str | os.PathLike) -> Any:
-    from .nodes.pipelines import recorder_params
-    from .nodes.recorder import RecorderNode
-
-    os.makedirs(run_dir, exist_ok=True)
-    rec = RecorderNode(**recorder_params(config))
-    rec.run_dir = os.fspath(run_dir)
-    rec.setup()
-    return rec
-
-
 class NeoSLAM(_SLAM):
     """NeoSLAM: A (features), B (projector), C (neocortex), D (spatial-view cells) and the RatSLAM
     back end (pose cells, experience map). ``front_end`` and ``back_end`` are the two cores."""
 
     pipeline = "neoslam"
 
-    def _make_front_end(self, config: Any) -> FrontEnd:
-        return FrontEnd(config.front_end())
+    def _make_front_end(self, config: FullRunConfig) -> FrontEnd:
+        fe = FrontEnd(config.front_end())
+        #: the stages of the chain, in order (``nodes/chain.py``)
+        self.chain = neoslam_chain(fe.config)
+        return fe
 
     def _template(self, data: dict[str, Any], frame: int,
-                  stamp: float) -> tuple[dict[str, Any] | None, FrontEndResult | None]:
+                  stamp: float) -> tuple[Template | None, FrontEndResult | None]:
         if not self.front_end.keep(frame):
             return None, None
-        front = self.front_end.step(decode_rgb(data), frame, stamp)
-        return front.template, front
+        x: list[Any] = [decode_rgb(data)]
+        out = {}
+        for stage in self.chain:
+            x = run_stage(self.front_end, stage, x, [stamp])
+            out[stage.gives] = x[0]
+        return out[VISUAL_TEMPLATE], FrontEndResult(out[BIN_FEATURES], out[SDR], out[VISUAL_TEMPLATE])
 
     def step_cells(self, cells: np.ndarray, odometry: Odometry | None = None, stamp: float | None = None,
                    frame: int | None = None) -> StepResult:
@@ -268,11 +276,11 @@ class RatSLAM(_SLAM):
 
     pipeline = "ratslam"
 
-    def _make_front_end(self, config: Any) -> LocalViewFrontEnd:
+    def _make_front_end(self, config: FullRunConfig) -> LocalViewFrontEnd:
         return LocalViewFrontEnd(config.local_view, config.platform)
 
     def _template(self, data: dict[str, Any], frame: int,
-                  stamp: float) -> tuple[dict[str, Any] | None, FrontEndResult | None]:
+                  stamp: float) -> tuple[Template | None, FrontEndResult | None]:
         return self.front_end.template(camera_pixels(data), stamp), None
 
 

@@ -8,17 +8,17 @@ and the sources.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
+from .config import FullRunConfig
 from .runtime.parts import run_part
 from .runtime.topology import RunError, RunResult
 
 __all__ = ["RunError", "RunResult", "run"]
 
 
-def run(cfg: Any, run_dir: str | Path | None = None, resume: str | Path | None = None,
+def run(cfg: FullRunConfig, run_dir: str | Path | None = None, resume: str | Path | None = None,
         map_path: str | Path | None = None) -> RunResult:
-    """Run ``cfg`` (a :class:`~neoslam_stream.config.FullRunConfig`) to the end of its source or
+    """Run ``cfg`` to the end of its source or
     until interrupted; returns the report. ``resume``: a run folder to continue from its last
     complete checkpoint; ``map_path``: an exported map to start from (a new session on an old map)."""
     from .nodes.pipelines import build_plan

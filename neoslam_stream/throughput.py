@@ -22,6 +22,8 @@ import math
 from pathlib import Path
 from typing import Any
 
+from .config import FullRunConfig, load_config
+
 log = logging.getLogger(__name__)
 
 #: the paper's two conditions (Table I: 13 FPS and 10 FPS) are always part of the default sweep
@@ -33,10 +35,8 @@ SCALING_STEP = 1000
 
 
 def bench_config(config: str | None, topology: str, mode: str, backbone: str | None,
-                 overrides: dict[str, Any] | None = None) -> Any:
+                 overrides: dict[str, Any] | None = None) -> FullRunConfig:
     """The run config of one bench run: NeoSLAM on the looped synthetic world."""
-    from .config import load_config
-
     over: dict[str, Any] = {
         "run": {"pipeline": "neoslam", "topology": topology, "mode": mode, "live": False},
         "source": {"kind": "synthetic", "params": {"seed": 0, "loop": True}},
@@ -147,7 +147,7 @@ def _steal_note(row: dict[str, Any]) -> str:
     return f", the hypervisor took {steal:.1f} s of CPU" if steal else ""
 
 
-def image_capacity(cfg: Any, topology: str) -> int:
+def image_capacity(cfg: FullRunConfig, topology: str) -> int:
     """The frames A's image ring holds in this run, by the supervisor's rule
     (runtime/topology.py ``queue_capacities``)."""
     from .nodes.pipelines import build_plan

@@ -7,8 +7,7 @@ import numpy as np
 import pytest
 
 from neoslam_stream import NeoSLAM, RatSLAM, load_config
-from neoslam_stream.runtime.messages import MessageError
-from neoslam_stream.runtime.node import StageInputError
+from neoslam_stream.algorithms.errors import InvalidInput
 from neoslam_stream.sources.synthetic import SyntheticWorldSource
 
 
@@ -64,11 +63,11 @@ def test_frames_must_advance_and_bad_input_is_refused_without_breaking_the_chain
     slam.step(frames[0].image, frame=5)
     with pytest.raises(ValueError, match="not after"):
         slam.step(frames[1].image, frame=5)
-    with pytest.raises(MessageError):  # validated like a message from the bus: uint8 images only
+    with pytest.raises(InvalidInput, match="uint8"):  # uint8 images only
         slam.step(frames[1].image.astype(np.float32))
-    with pytest.raises(StageInputError, match="channels"):
+    with pytest.raises(InvalidInput, match="channels"):
         slam.step(frames[1].image[:, :, :2])
-    with pytest.raises(StageInputError, match="corrupt|truncated|decode"):
+    with pytest.raises(InvalidInput, match="corrupt|truncated|decode"):
         slam.step(b"\xff\xd8not a jpeg")
     ok, jpeg = cv2.imencode(".jpg", frames[2].image[:, :, ::-1])
     assert ok and slam.step(jpeg.tobytes()).template_id is not None
@@ -76,7 +75,7 @@ def test_frames_must_advance_and_bad_input_is_refused_without_breaking_the_chain
 
 def test_non_finite_odometry_is_refused(frames):
     slam = NeoSLAM(_cfg())
-    with pytest.raises(MessageError, match="not finite"):
+    with pytest.raises(InvalidInput, match="not finite"):
         slam.step(frames[0].image, odometry=(float("nan"), 0.0, 0.1))
 
 
@@ -94,7 +93,7 @@ def test_a_refused_image_still_moves_the_robot(frames):
     (without a template), so the next pose is where the wheels say."""
     slam = RatSLAM(_cfg())
     first = slam.step(frames[0].image, odometry=(1.0, 0.0, 0.1))
-    with pytest.raises(StageInputError):
+    with pytest.raises(InvalidInput):
         slam.step(b"\xff\xd8not a jpeg", odometry=(1.0, 0.0, 0.1))
     r = slam.step(frames[1].image, odometry=(1.0, 0.0, 0.1))
     assert r.frame == 2 and r.pose[0] - first.pose[0] == pytest.approx(0.2)  # 0.1 m per sample, both counted

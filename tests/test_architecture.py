@@ -49,8 +49,8 @@ def _offending(paths: list[Path], forbidden: tuple[str, ...]) -> dict[str, list[
 
 def test_the_import_scan_sees_relative_imports():
     # the scan itself must be able to fail: a node module imports the runtime and the algorithms
-    found = _imports(PKG / "nodes" / "spatial_view.py")
-    assert "neoslam_stream.runtime.node" in found and "neoslam_stream.algorithms.spatial_view" in found
+    found = _imports(PKG / "nodes" / "frontend.py")
+    assert "neoslam_stream.runtime.node" in found and "neoslam_stream.algorithms.frontend" in found
 
 
 def test_no_algorithm_module_imports_the_runtime_nodes_or_zenoh():
@@ -115,13 +115,13 @@ def test_importing_every_algorithm_loads_no_runtime_and_no_zenoh():
     assert "torch" not in loaded  # configs and the pure algorithms do not need it
 
 
-@pytest.mark.parametrize("node", ["projector", "neocortex", "spatial_view", "ratslam", "recorder", "pipelines"])
+@pytest.mark.parametrize("node", ["frontend", "ratslam", "recorder", "pipelines"])
 def test_only_stage_a_loads_torch(node):
-    # each worker imports its node's module: only A's may bring in torch (~180 MB a process)
+    # each worker imports its node's module: only A's setup may bring in torch (~180 MB a process)
     assert "torch" not in _loaded_after(f"import neoslam_stream.nodes.{node}\nimport neoslam_stream.runtime.worker")
 
 
 def test_stage_a_node_does_load_torch_when_it_builds_its_extractor():
-    code = ("from neoslam_stream.nodes.features import make_node\n"
-            "n = make_node(backbone='random_alexnet'); n.setup()")
+    code = ("from neoslam_stream.nodes.frontend import make_node\n"
+            "n = make_node('features', features={'backbone': 'random_alexnet'}); n.setup()")
     assert "torch" in _loaded_after(code)

@@ -14,7 +14,8 @@ from neoslam_stream.algorithms.oracle import OracleTemplates
 from neoslam_stream.algorithms.spatial_view import SpatialViewCells, SpatialViewConfig
 from neoslam_stream.cli import main
 from neoslam_stream.config import ConfigError, load_config
-from neoslam_stream.nodes.recorder import CLOSURES_HEADER, RecorderNode
+from neoslam_stream.nodes.recorder import RecorderNode
+from neoslam_stream.nodes.run_rows import CLOSURES_HEADER
 from neoslam_stream.nodes.topics import GROUNDTRUTH, VISUAL_TEMPLATE
 from neoslam_stream.runtime.messages import Message
 

@@ -211,8 +211,8 @@ def test_the_recorder_writes_the_trajectory_on_the_final_map(tmp_path):
     save_state_file(tmp_path / "rec.state", rec.state_dict())
     again = RecorderNode()
     again.load_state_dict(load_state_file(tmp_path / "rec.state"))
-    again.map_export = export
-    assert again.trajectory_on_map() == (tmp_path / "trajectory_map.tum").read_text()
+    again.folder.on_map(export)
+    assert again.folder.trajectory_on_map() == (tmp_path / "trajectory_map.tum").read_text()
 
 
 def test_actions_without_odometry_are_refused_by_the_topic_schema():

@@ -115,7 +115,7 @@ def test_a_recorder_that_recorded_nothing_leaves_no_output_files(tmp_path):
     (run / "map.json").write_text('{"nodes": [{"id": 0}], "links": []}')
     rec = RecorderNode()
     rec.run_dir, rec.run_id = str(run), "r-failed"
-    rec.map_export = {"nodes": [], "links": []}  # the experience map's final (empty) map
+    rec.folder.on_map({"nodes": [], "links": []})  # the experience map's final (empty) map
     rec.flush()
     rec.close()
     assert [p.name for p in run.iterdir()] == []

@@ -6,9 +6,15 @@ import pytest
 import torch
 
 from neoslam_stream.algorithms import features as F
-from neoslam_stream.nodes import features as FN
+from neoslam_stream.algorithms.errors import InvalidInput
+from neoslam_stream.algorithms.frontend import FrontEnd
+from neoslam_stream.nodes.frontend import make_node
 from neoslam_stream.runtime.messages import Message
-from neoslam_stream.runtime.node import StageInputError
+
+
+def a_node(**features):
+    """Stage A's node with these features parameters."""
+    return make_node("features", features=features)
 
 
 @pytest.fixture(scope="module")
@@ -17,8 +23,8 @@ def rand_fx():
 
 
 def test_stride_keeps_0_s_2s(rand_fx):
-    fx = F.VisualFeatureExtractor(backbone="random_alexnet", frame_stride=4)
-    assert [f for f in range(13) if fx.keep(f)] == [0, 4, 8, 12]
+    fe = FrontEnd(features={"backbone": "random_alexnet", "frame_stride": 4})
+    assert [f for f in range(13) if fe.keep(f)] == [0, 4, 8, 12]
 
 
 def test_crop_x_is_columns_y_is_rows():
@@ -40,9 +46,9 @@ def test_crop_outside_image_is_a_clear_error():
     with pytest.raises(F.InvalidImage, match="does not fit"):
         fx.crop_array(np.zeros((10, 20, 3), np.uint8))
     # the node turns it into a counted bad input of that frame
-    node = FN.make_node(backbone="random_alexnet", crop_image=True, x_min=0, x_max=100)
+    node = a_node(backbone="random_alexnet", crop_image=True, x_min=0, x_max=100)
     node.setup()
-    with pytest.raises(StageInputError, match="does not fit"):
+    with pytest.raises(InvalidInput, match="does not fit"):
         node.process("image", Message("image", 0, 0.0, {"image": np.zeros((10, 20, 3), np.uint8)}))
 
 
@@ -200,7 +206,7 @@ def test_efficientnet_state_dict_loads_strictly():
 
 
 def test_stage_strides_and_reports_backbone():
-    st = FN.make_node(backbone="random_alexnet", frame_stride=2)
+    st = a_node(backbone="random_alexnet", frame_stride=2)
     st.setup()
     msgs = [Message("image", i, i * 0.1, {"image": np.zeros((32, 32, 3), np.uint8), "encoding": "rgb8"})
             for i in range(5)]
@@ -213,20 +219,20 @@ def test_stage_strides_and_reports_backbone():
 
 
 def test_stage_rejects_corrupt_jpeg():
-    st = FN.make_node(backbone="random_alexnet")
+    st = a_node(backbone="random_alexnet")
     st.setup()
     bad = Message("image", 0, 0.0, {"compressed": b"\xff\xd8\xff\xe0garbage", "format": "jpeg"})
-    with pytest.raises(StageInputError, match="corrupt|truncated"):
+    with pytest.raises(InvalidInput, match="corrupt|truncated"):
         st.process("image", bad)
 
 
 def test_failed_batch_does_not_count_strided_frames():
     # the worker retries a failed batch frame by frame; strided frames must be counted once
-    st = FN.make_node(backbone="random_alexnet", frame_stride=2)
+    st = a_node(backbone="random_alexnet", frame_stride=2)
     st.setup()
     good = [Message("image", i, 0.0, {"image": np.zeros((16, 16, 3), np.uint8)}) for i in (1, 3)]
     bad = Message("image", 2, 0.0, {"compressed": b"not an image", "format": "jpeg"})
-    with pytest.raises(StageInputError):
+    with pytest.raises(InvalidInput):
         st.process_batch("image", [good[0], bad, good[1]])
     assert st.counters["strided"] == 0
     for m in (good[0], good[1]):

@@ -3,10 +3,15 @@
 import numpy as np
 import pytest
 
+from neoslam_stream.algorithms.errors import InvalidInput
 from neoslam_stream.algorithms.neocortex import Neocortex
-from neoslam_stream.nodes.neocortex import make_node as make_stage
+from neoslam_stream.nodes.frontend import make_node
 from neoslam_stream.runtime.messages import Message
-from neoslam_stream.runtime.node import StageInputError
+
+
+def make_stage(**params):
+    """Stage C's node with these neocortex parameters."""
+    return make_node("cells", neocortex=params)
 
 
 def _inputs(n, seed=0):
@@ -41,7 +46,7 @@ def test_stage_emits_sdr_with_anomaly_and_rejects_wrong_size():
     (topic, msg), = out
     assert topic == "sdr" and msg["size"] == 65536 and msg["anomaly"] == 1.0
     assert msg["cells"].size == 512
-    with pytest.raises(StageInputError):
+    with pytest.raises(InvalidInput):
         st.process("bin_features", Message("bin_features", 1, 0.0, {"bits": bits, "size": 1024}))
     info = st.info()
     assert info["segments"] == 0 and info["steps"] == 1

@@ -6,8 +6,14 @@ import pytest
 from neoslam_stream.algorithms import projection as PM
 from neoslam_stream.algorithms import projector as P
 from neoslam_stream.algorithms import weights as W
-from neoslam_stream.nodes import projector as PN
+from neoslam_stream.algorithms.errors import InvalidInput
+from neoslam_stream.nodes.frontend import make_node
 from neoslam_stream.runtime.messages import Message
+
+
+def b_node(**projector):
+    """Stage B's node with these projector parameters."""
+    return make_node("bits", projector=projector)
 
 
 def test_slsbh_hand_made_vector():
@@ -86,17 +92,15 @@ def test_sparse_projection_density_and_values():
 
 
 def test_stage_batches_and_validates_length():
-    st = PN.make_node(input_dim=100, seed=2)
+    st = b_node(input_dim=100, seed=2)
     st.setup()
     rng = np.random.default_rng(0)
     msgs = [Message("visual_features", i, 0.0, {"features": rng.standard_normal(100).astype(np.float32)})
             for i in range(3)]
     out = st.process_batch("visual_features", msgs)
     assert len(out) == 3 and all(m["bits"].size == 512 for _, m in out)
-    np.testing.assert_array_equal(out[1][1]["bits"], st.projector.bits(msgs[1]["features"]))
-    from neoslam_stream.runtime.node import StageInputError
-
-    with pytest.raises(StageInputError):
+    np.testing.assert_array_equal(out[1][1]["bits"], st.core.projector.bits(msgs[1]["features"]))
+    with pytest.raises(InvalidInput):
         st.process("visual_features", Message("visual_features", 9, 0.0, {"features": np.zeros(7, np.float32)}))
 
 
@@ -172,10 +176,10 @@ def test_nan_features_are_rejected():
         bp.bits(np.zeros((2, 10), np.float32))
     with pytest.raises(ValueError, match="features of shape"):  # the wrong length
         bp.bits(np.zeros(9, np.float32))
-    stage = PN.make_node(input_dim=10)
+    stage = b_node(input_dim=10)
     stage.setup()
     msg = Message("visual_features", 3, 0.3, {"features": bad, "backbone": "random_alexnet"})
-    with pytest.raises(PN.StageInputError, match="NaN"):
+    with pytest.raises(InvalidInput, match="NaN"):
         stage.process("visual_features", msg)
 
 
@@ -420,7 +424,7 @@ def test_a_gpu_device_fuses_a_and_b_into_one_node_in_the_plan():
     cfg = load_config("default", overrides={"projector": {"device": "cuda:1"}})
     stages = build_plan(cfg).stages
     assert [s.name for s in stages][:2] == ["A", "C"]
-    assert stages[0].factory.endswith(":make_fused_node")
+    assert stages[0].params["call"] == "bits_on_device"
     assert stages[0].params["features"]["device"] == "cuda:1"  # A follows B's device
     cfg = load_config("default", overrides={"projector": {"device": "cuda"}, "features": {"device": "cpu"}})
     with pytest.raises(ValueError, match="share the device"):
@@ -428,14 +432,12 @@ def test_a_gpu_device_fuses_a_and_b_into_one_node_in_the_plan():
 
 
 def test_fused_node_on_cpu_emits_the_bits_of_a_then_b():
-    from neoslam_stream.nodes import features as FN
-
     feats = dict(backbone="random_alexnet", seed=1, device="cpu", frame_stride=2)
-    fused = FN.make_fused_node(feats, dict(input_dim=64896, seed=5))
+    fused = make_node("bits_on_device", features=feats, projector=dict(input_dim=64896, seed=5))
     fused.setup()
-    a = FN.make_node(**feats)
+    a = make_node("features", features=feats)
     a.setup()
-    b = PN.make_node(input_dim=64896, seed=5)
+    b = b_node(input_dim=64896, seed=5)
     b.setup()
     rng = np.random.default_rng(0)
     msgs = [Message("image", i, i * 0.1, {"image": rng.integers(0, 256, (60, 80, 3), dtype=np.uint8),
@@ -445,4 +447,4 @@ def test_fused_node_on_cpu_emits_the_bits_of_a_then_b():
     ref = b.process_batch("visual_features", [m for _, m in a.process_batch("image", msgs)])
     for (_, got), (_, want), (_, f) in zip(out, ref, a.process_batch("image", msgs), strict=True):
         assert got.type == "bin_features" and got["size"] == 2048
-        _marginal_only(want["bits"], got["bits"], b.projector.project(f["features"]))
+        _marginal_only(want["bits"], got["bits"], b.core.projector.project(f["features"]))

@@ -17,7 +17,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from neoslam_stream.nodes.recorder import JOURNAL, TEMPLATES_HEADER, RecorderNode
+from neoslam_stream.nodes.recorder import RecorderNode
+from neoslam_stream.nodes.run_folder import JOURNAL, RunFolder
+from neoslam_stream.nodes.run_rows import TEMPLATES_HEADER
 from neoslam_stream.nodes.topics import EXPERIENCE_MAP, EXPERIENCE_POSE, VISUAL_TEMPLATE
 from neoslam_stream.runtime import files as files_mod
 from neoslam_stream.runtime.messages import Message
@@ -143,7 +145,7 @@ def test_a_full_disk_never_empties_map_json_nor_tears_a_row(tmp_path, monkeypatc
     (run / "map.json").write_text('{"nodes": [], "links": []}')  # from an earlier flush
     fail = {"on": False}
     disk_full_after(monkeypatch, fail)
-    monkeypatch.setattr(RecorderNode, "RETRY_S", 0.0)
+    monkeypatch.setattr(RunFolder, "RETRY_S", 0.0)
     rec = _recorder(run)
     _feed(rec, range(4))
     fail["on"] = True

@@ -15,8 +15,9 @@ from mcap_ros2._dynamic import generate_dynamic
 from mcap_ros2.decoder import DecoderFactory
 from zenoh.ext import Int64, z_deserialize
 
-from neoslam_stream.nodes.recorder import MCAP, RecorderNode
+from neoslam_stream.nodes.recorder import RecorderNode
 from neoslam_stream.nodes.ros2_out import TOPICS, Ros2Messages, Ros2OutNode, replay, type_hash
+from neoslam_stream.nodes.run_folder import MCAP
 from neoslam_stream.nodes.topics import EXPERIENCE_MAP, EXPERIENCE_POSE, VISUAL_TEMPLATE
 from neoslam_stream.runtime.bus import open_session, wait_for_peers
 from neoslam_stream.runtime.messages import Message
@@ -196,7 +197,7 @@ def test_recorder_writes_outputs_mcap_readable_by_the_mcap_reader(tmp_path):
         _check_pose(d.pose.pose, x, y, th)
     # the same messages as the live output gets from the same topics
     conv = Ros2Messages(**params)
-    expected = list(replay(conv, rec.templates, rec.trajectory, None))
+    expected = list(replay(conv, rec.folder.templates, rec.folder.trajectory, None))
     assert [c.topic for _, c, _, _ in msgs] == [o.topic for o in expected]
     assert [m.data for _, _, m, _ in msgs] == [conv.serialize(o) for o in expected]
 

@@ -5,7 +5,7 @@ import pytest
 
 import neoslam_stream.algorithms.interval_index as ii
 from neoslam_stream.algorithms.spatial_view import SpatialViewCells
-from neoslam_stream.nodes.spatial_view import make_node as make_stage
+from neoslam_stream.nodes.frontend import make_node
 from neoslam_stream.runtime.messages import Message
 
 
@@ -177,13 +177,10 @@ def test_a_state_made_with_other_parameters_is_refused():
         svc().load_state_dict(state)
     with pytest.raises(ValueError, match=r"sdr_size: the state was made with 256, the config has 512"):
         svc(theta_sigma=8, sdr_size=512).load_state_dict(state)
-    # parameters a state does not depend on may differ; a state without "params" is taken as it is
+    # parameters a state does not depend on may differ
     b = svc(theta_sigma=8, theta_margin=1.0)
     b.load_state_dict(state)
     assert b.n_intervals == 4 and b.config.theta_margin == 1.0
-    c = svc()
-    c.load_state_dict({k: v for k, v in state.items() if k != "params"})
-    assert c.n_intervals == 4 and c.config.theta_sigma == 4
 
 
 def test_invalid_sdr_is_rejected():
@@ -195,7 +192,8 @@ def test_invalid_sdr_is_rejected():
 def test_node_emits_templates_and_the_recorder_writes_them(tmp_path):
     from neoslam_stream.nodes.recorder import RecorderNode
 
-    st = make_stage(theta_alpha=3, theta_rho=2, theta_sigma=4, exclude_recent_intervals=1, sdr_size=256)
+    st = make_node("template", spatial_view=dict(theta_alpha=3, theta_rho=2, theta_sigma=4,
+                                                exclude_recent_intervals=1, sdr_size=256))
     rec = RecorderNode()
     rec.run_dir = str(tmp_path)
     outs = []
@@ -382,9 +380,10 @@ def test_bit_sliced_search_across_blocks_and_limits_equals_exhaustive_scoring():
         u[moved] = rng.integers(0, 2048, int(moved.sum()))
         unions.append(np.unique(u).astype(np.uint32))
     svc = SpatialViewCells()
-    svc.load_state_dict({"params": [384, 3, 470, 3, 65536], "unions": unions, "start": np.arange(k) * 4,
+    svc.load_state_dict({**svc.state_dict(), "unions": unions, "start": np.arange(k) * 4,
                          "end": np.arange(k) * 4 + 3, "template": np.arange(k), "n_templates": k,
-                         "current_template": k - 1, "t": 4 * k})
+                         "current_template": k - 1, "t": 4 * k, "stamps": np.arange(k) * 4.0,
+                         "indexed": np.arange(k - 1)})
     index = svc.index
     assert index._n_dense - 1 > 1900
     limits = [2, 63, 64, 65, 4097, ii.SLICE_BLOCK - 1, ii.SLICE_BLOCK, ii.SLICE_BLOCK + 1, k - 3]

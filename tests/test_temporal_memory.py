@@ -18,8 +18,8 @@ def tiny(**kw):
 def test_bursting_column_activates_all_its_cells():
     tm = tiny()
     tm.compute([1])
-    assert tm.getActiveCells().tolist() == [3, 4, 5]
-    assert tm.getWinnerCells().tolist() == [3]  # least used, lowest index
+    assert tm.active_cells.tolist() == [3, 4, 5]
+    assert tm.winner_cells.tolist() == [3]  # least used, lowest index
     assert tm.anomaly == 1.0
 
 
@@ -29,10 +29,10 @@ def test_predicted_column_activates_only_predicted_cells():
     tm.add_synapse(seg, 0, 0.6)
     tm.add_synapse(seg, 1, 0.6)
     tm.compute([0], learn=False)  # bursts column 0: cells 0, 1, 2 active
-    assert tm.getPredictiveCells().tolist() == [4]
+    assert tm.predicted_cells().tolist() == [4]
     tm.compute([1], learn=False)
-    assert tm.getActiveCells().tolist() == [4]
-    assert tm.getWinnerCells().tolist() == [4]
+    assert tm.active_cells.tolist() == [4]
+    assert tm.winner_cells.tolist() == [4]
     assert tm.anomaly == 0.0
 
 
@@ -41,7 +41,7 @@ def test_burst_winner_is_least_used_cell_lowest_index_on_ties():
     seg = tm.createSegment(3)  # cell 3 now has a segment; 4 and 5 have none
     tm.add_synapse(seg, 11, 0.6)
     tm.compute([1], learn=False)
-    assert tm.getWinnerCells().tolist() == [4]
+    assert tm.winner_cells.tolist() == [4]
 
 
 def test_best_matching_segment_by_active_potential_synapses():
@@ -53,14 +53,14 @@ def test_best_matching_segment_by_active_potential_synapses():
     tm.add_synapse(s5, 1, 0.2)  # 2 active potential synapses: the best match
     tm.compute([0], learn=False)
     tm.compute([1], learn=False)
-    assert tm.getWinnerCells().tolist() == [5]
-    assert tm.getActiveCells().tolist() == [3, 4, 5]  # not predicted: it bursts
+    assert tm.winner_cells.tolist() == [5]
+    assert tm.active_cells.tolist() == [3, 4, 5]  # not predicted: it bursts
 
 
 def test_new_segment_grows_min_of_max_new_and_prev_winners():
     tm = tiny(max_new_synapse_count=3)
     tm.compute([0, 2])  # winners: cells 0 and 6
-    assert tm.getWinnerCells().tolist() == [0, 6]
+    assert tm.winner_cells.tolist() == [0, 6]
     tm.compute([1])  # bursts without matching segment: new segment on cell 3
     segs = tm.segments_of_cell(3)
     assert len(segs) == 1
@@ -144,7 +144,7 @@ def test_synapse_cap_removes_weakest_non_candidates():
     tm.add_synapse(seg, 10, 0.4)
     tm.add_synapse(seg, 11, 0.45)
     tm.compute([0, 1], learn=False)  # winners: cells 0 and 3
-    assert tm.getWinnerCells().tolist() == [0, 3]
+    assert tm.winner_cells.tolist() == [0, 3]
     # column 1 bursts, segment matches (pot 1); grow maxNew - pot = 1: overrun 4 + 1 - 4 = 1
     tm.compute([1], learn=True)
     pre, perm = tm.synapses_of_segment(seg)
@@ -206,8 +206,8 @@ def test_random_tie_rule_draws_among_the_least_used_after_the_shuffle():
     # 3rd: 4083286876 % 3 = 1 (digit sum 52), so the winner is the column's cell 1
     tm = tiny(tie_break="random")
     tm.compute([2])
-    assert tm.getWinnerCells().tolist() == [2 * 3 + 1]
-    assert tm.getActiveCells().tolist() == [6, 7, 8]
+    assert tm.winner_cells.tolist() == [2 * 3 + 1]
+    assert tm.active_cells.tolist() == [6, 7, 8]
 
 
 def test_non_integer_columns_rejected():
@@ -215,7 +215,7 @@ def test_non_integer_columns_rejected():
     with pytest.raises(ValueError, match="integer"):
         tm.compute(np.array([1.0, np.nan]))
     tm.compute(np.array([], dtype=float))  # an empty step is allowed, whatever its dtype
-    assert tm.getActiveCells().size == 0
+    assert tm.active_cells.size == 0
 
 
 def test_load_state_from_another_configuration_rejected():

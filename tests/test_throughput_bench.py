@@ -74,7 +74,7 @@ def test_smoke_run_writes_throughput_json(tmp_path, capsys):
     assert 0.0 <= r["loss"] <= 1.0
     assert {"A", "B", "C", "D", "pose_cells", "experience_map"} <= set(r["stages"])
     # no --backbone: the shipped default's backbone, as `neoslam run` resolves it (not the random one)
-    from neoslam_stream.algorithms.weights import resolve_backbone
+    from neoslam_stream.algorithms.features import resolve_backbone
     from neoslam_stream.config import load_config
 
     assert r["backbone"] == resolve_backbone(load_config("default").features) != "random_alexnet"

@@ -35,7 +35,7 @@ def test_parity_with_htm_core_trace():
     same_winners = same_predictive = same_counts = cell0 = total = 0
     for i, (x, ref) in enumerate(zip(inputs, winners, strict=True)):
         # the driver read the predictions before compute(), which then reuses them
-        same_predictive += int(np.array_equal(nc.tm.getPredictiveCells(), predictive[i]))
+        same_predictive += int(np.array_equal(nc.tm.predicted_cells(), predictive[i]))
         w = nc.compute(x)
         anomalies.append(nc.anomaly)
         counts.append((nc.tm.segments, nc.tm.synapses))
@@ -102,7 +102,7 @@ def test_parity_with_htm_core_on_every_learning_rule(name):
     tm = TemporalMemory(**params)
     blocks, h = [], hashlib.sha256()
     for i, x in enumerate(_noisy_sequences(3), start=1):
-        n_predictive = tm.getPredictiveCells().size
+        n_predictive = tm.predicted_cells().size
         w = tm.compute(np.array(x))
         h.update(f"{' '.join(map(str, w.tolist()))}|{tm.segments} {tm.synapses} {n_predictive}\n".encode())
         if i % 100 == 0:

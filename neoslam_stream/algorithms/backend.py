@@ -12,7 +12,6 @@ composes both for the in-process API and the benches.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -25,6 +24,7 @@ from .ratslam.odometry_bias import OdometryBiasConfig, YawBiasEstimator
 from .ratslam.odometry_gate import OdometryGate, OdometryGateConfig
 from .ratslam.pose_cells import PoseCellConfig, PoseCellNetwork
 from .ratslam.visual_odometry import VisualOdometry, VisualOdometryConfig
+from .records import Action, MapPose
 
 
 class PoseCellStageConfig(PoseCellConfig):
@@ -34,32 +34,6 @@ class PoseCellStageConfig(PoseCellConfig):
     odometry_gate: OdometryGateConfig = Field(default_factory=OdometryGateConfig)
     #: subtract the odometry's yaw-rate bias, estimated from loop closures (enabled false: off)
     odometry_bias: OdometryBiasConfig = Field(default_factory=OdometryBiasConfig)
-
-
-@dataclass
-class Action:
-    """One pose-cell update: the experience-map action (0 none, 1 new node, 2 edge, 3 set node),
-    its source and destination experiences, the odometry it integrated (vrot corrected), and the
-    yaw-rate bias's wander measured so far (rad^2/s^3, 0: none; the map's ``bias_walk``)."""
-
-    action: int
-    src_id: int
-    dst_id: int
-    relative_rad: float
-    vtrans: float
-    vrot: float
-    dt: float
-    bias_wander: float = 0.0
-
-
-@dataclass
-class MapPose:
-    """The experience map's pose of the robot (x, y, theta), its experience and the pose in that
-    experience's frame (dx, dy, dtheta), from which the final map re-expresses it."""
-
-    pose: np.ndarray
-    exp_id: int
-    local: np.ndarray
 
 
 class PoseCellStage:
@@ -99,7 +73,7 @@ class PoseCellStage:
         action, src, dst, rel = self.network.get_action()
         self.bias.on_action(action, dst, rel)
         self.actions[action] += 1
-        return Action(action, src, dst, rel, vtrans, vrot, dt, self.bias.wander)
+        return Action(action, src, dst, vtrans, vrot, dt, relative_rad=rel, bias_wander=self.bias.wander)
 
     def new_session(self) -> None:
         """A new session on an old map: times start again."""
@@ -122,12 +96,10 @@ class PoseCellStage:
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
         self.network.load_state_dict(st["pc"])
-        if "gate" in st:
-            self.gate.load_state_dict(st["gate"])
-        if "bias" in st:
-            self.bias.load_state_dict(st["bias"])
-        self.actions = {int(k): int(v) for k, v in st.get("actions", {}).items()} or self.actions
-        stamp = float(st.get("prev_odom_stamp", -1.0))
+        self.gate.load_state_dict(st["gate"])
+        self.bias.load_state_dict(st["bias"])
+        self.actions = {int(k): int(v) for k, v in st["actions"].items()}
+        stamp = float(st["prev_odom_stamp"])
         self.prev_stamp = None if stamp < 0 else stamp
 
 

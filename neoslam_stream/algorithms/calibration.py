@@ -225,15 +225,13 @@ class RunCalibration:
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
         # the intervals first: the evidence kept (L frames) follows from the interval they measure
-        self.intervals = deque((float(v) for v in st.get("intervals", [])), maxlen=64)
-        self.history = deque(((int(t), int(m), float(c)) for t, m, c in st.get("history", [])),
+        self.intervals = deque((float(v) for v in st["intervals"]), maxlen=64)
+        self.history = deque(((int(t), int(m), float(c)) for t, m, c in st["history"]),
                              maxlen=max(self.sequence_frames, 1))
-        self.pending = [(int(f), int(k), int(m)) for f, k, m in st.get("pending", [])]
-        stamp = st.get("last_stamp")
+        self.pending = [(int(f), int(k), int(m)) for f, k, m in st["pending"]]
+        stamp = st["last_stamp"]
         self.last_stamp = None if stamp is None else float(stamp)
-        fig = st.get("figures")
-        if fig:
-            (self.ready_frame, self.frames_assessed, self.sum_mean, self.sum_sd, self.closures,
-             self.first_closure_frame) = (int(fig[0]), int(fig[1]), float(fig[2]), float(fig[3]), int(fig[4]),
-                                          int(fig[5]))
-            self.templates_merged = int(fig[6]) if len(fig) > 6 else 0
+        fig = st["figures"]
+        (self.ready_frame, self.frames_assessed, self.sum_mean, self.sum_sd, self.closures,
+         self.first_closure_frame, self.templates_merged) = (int(fig[0]), int(fig[1]), float(fig[2]),
+                                                             float(fig[3]), int(fig[4]), int(fig[5]), int(fig[6]))

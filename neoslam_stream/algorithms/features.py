@@ -34,7 +34,6 @@ from .weights import (
     alexnet_missing_message,
     efficientnet_lite0_weights,
     find_alexnet_weights,
-    resolve_backbone,
     resolve_device,
 )
 
@@ -115,6 +114,19 @@ class FeatureConfig(BaseModel):
     #: features bit for bit). A GPU always runs it eager
     inference: Literal["eager", "frozen"] = "frozen"
     seed: int = 42
+
+
+def resolve_backbone(config: FeatureConfig) -> str:
+    """The backbone stage A runs: ``config.backbone``, with ``auto`` decided as AlexNet when its
+    weights are found (or ``download_weights``), else EfficientNet-Lite0; a configured
+    ``weights_path`` that does not exist also means EfficientNet-Lite0 here."""
+    if config.backbone != "auto":
+        return config.backbone
+    try:
+        found = find_alexnet_weights(config.weights_path) is not None or config.download_weights
+    except FileNotFoundError:
+        found = False
+    return "alexnet" if found else "efficientnet_lite0"
 
 
 class InvalidImage(InvalidInput):
@@ -202,10 +214,6 @@ class VisualFeatureExtractor:
         raise ValueError(f"unknown backbone {backbone!r}")
 
     # ---------------------------------------------------------------- steps
-    def keep(self, frame: int) -> bool:
-        """frame_stride s: frames 0, s, 2s, ... are processed, the others removed on purpose."""
-        return frame % self.config.frame_stride == 0
-
     def crop_array(self, img: np.ndarray) -> np.ndarray:
         """Crop columns [x_min, x_max) and rows [y_min, y_max) (paper's convention) when enabled."""
         cfg = self.config

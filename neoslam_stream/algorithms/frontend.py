@@ -1,17 +1,18 @@
 """The NeoSLAM front end as one core, A -> B -> C -> D, and RatSLAM's local view as the baseline's.
 
-:class:`FrontEnd` turns a camera frame into a visual template: A's CNN features, B's sLSBH bits,
-C's winner cells, D's template id and loop-closure flag. Each part is built on first use, so a
-caller that starts from features (a bench replaying A's output) never loads torch, and each stage
-can also be called alone (``features``, ``bits``, ``cells``, ``template``): the nodes of a pipeline
-run call the same algorithms one stage per process. :class:`LocalViewFrontEnd` gives RatSLAM's
-local-view cells the same shape. ``FrontEndConfig.resolved`` decides "auto" once.
+:class:`FrontEnd` holds the four stages' parts and one method per stage: ``features`` (A: frames
+-> CNN features), ``bits`` (B: features -> sLSBH bits; ``bits_of_frames`` is A and B on one torch
+device), ``cells`` (C: bits -> winner cells), ``template`` (D: cells -> visual template). Each part
+is built on first use, so a caller that starts from features (a bench replaying A's output) never
+loads torch, and a process that hosts one stage builds that stage's part only. The order of the
+stages is declared once, in ``neoslam_stream.nodes.chain``, from which both the pipeline's nodes
+and the in-process API call these methods. :class:`LocalViewFrontEnd` gives RatSLAM's local-view
+cells the same shape. ``FrontEndConfig.resolved`` decides "auto" once.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 from functools import cached_property
 from typing import Any
 
@@ -20,16 +21,13 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from ._config import make_config
 from .calibration import CalibrationConfig, PlatformConfig, RunCalibration
-from .features import FeatureConfig, VisualFeatureExtractor, feature_dim
+from .features import FeatureConfig, VisualFeatureExtractor, feature_dim, resolve_backbone
 from .neocortex import Neocortex, NeocortexConfig
 from .projector import BinaryProjector, ProjectorConfig, TorchProjection
 from .ratslam.local_view import LocalViewCells, LocalViewConfig
+from .records import Template
 from .spatial_view import SpatialViewCells, SpatialViewConfig
-from .weights import resolve_backbone, resolve_device
-
-#: the keys of D's result that make a frame's visual template
-TEMPLATE_KEYS = ("id", "is_loop_closure", "best_interval", "relative_rad", "best_score", "second_interval",
-                 "second_score", "interval")
+from .weights import resolve_device
 
 
 class FrontEndConfig(BaseModel):
@@ -61,20 +59,15 @@ class FrontEndConfig(BaseModel):
         return self.model_copy(update={"features": feats, "projector": proj})
 
 
-@dataclass
-class FrontEndResult:
-    """What one frame produced: B's on-bits, C's winner cells and D's template (``TEMPLATE_KEYS``)."""
-
-    bits: np.ndarray
-    cells: np.ndarray
-    template: dict[str, Any]
-
-
 class FrontEnd:
-    """Camera frames -> visual templates (stages A, B, C, D of NeoSLAM)."""
+    """Camera frames -> visual templates (stages A, B, C, D of NeoSLAM).
 
-    def __init__(self, config: FrontEndConfig | None = None, **overrides: Any) -> None:
-        self.config = make_config(FrontEndConfig, config, overrides).resolved()
+    ``resolve=False`` takes the config as already resolved (``FrontEndConfig.resolved``): a node
+    that hosts one stage gets only its stage's sections, resolved by the run's plan."""
+
+    def __init__(self, config: FrontEndConfig | None = None, resolve: bool = True, **overrides: Any) -> None:
+        config = make_config(FrontEndConfig, config, overrides)
+        self.config = config.resolved() if resolve else config
 
     @cached_property
     def extractor(self) -> VisualFeatureExtractor:
@@ -87,10 +80,8 @@ class FrontEnd:
         return BinaryProjector(self.config.projector)
 
     @cached_property
-    def torch_projection(self) -> TorchProjection | None:
-        """B on A's torch device when ``projector.device`` is not cpu, else None."""
-        if self.config.projector.device == "cpu":
-            return None
+    def torch_projection(self) -> TorchProjection:
+        """B in torch on A's device (``projector.device`` not cpu, or a caller that asks for it)."""
         return TorchProjection(self.projector, self.extractor.device)
 
     @cached_property
@@ -115,38 +106,32 @@ class FrontEnd:
         """B: (n, feature_dim) features -> each row's sorted on-bits."""
         return self.projector.bits_batch(features)
 
+    def bits_on_device(self, rgbs: Sequence[np.ndarray]) -> list[np.ndarray]:
+        """A then B in torch on A's device: the features never leave it, only the bits do."""
+        return self.torch_projection.bits_batch(self.extractor.extract_tensor_batch(rgbs))
+
     def bits_of_frames(self, rgbs: Sequence[np.ndarray]) -> list[np.ndarray]:
-        """A then B; on a torch device the features never leave it."""
-        if self.torch_projection is not None:
-            return self.torch_projection.bits_batch(self.extractor.extract_tensor_batch(rgbs))
+        """A then B: on the device when ``projector.device`` is not cpu."""
+        if self.config.projector.device != "cpu":
+            return self.bits_on_device(rgbs)
         return self.bits(self.features(rgbs))
 
     def cells(self, bits: np.ndarray) -> np.ndarray:
         """C: one frame's on-bits -> its winner cells (one learning step)."""
         return self.neocortex.compute(bits)
 
-    def template(self, cells: np.ndarray, stamp: float | None = None) -> dict[str, Any]:
-        """D: one frame's winner cells (and its stamp, seconds) -> its visual template
-        (``TEMPLATE_KEYS``)."""
+    def template(self, cells: np.ndarray, stamp: float | None = None) -> Template:
+        """D: one frame's winner cells (and its stamp, seconds) -> its visual template."""
         res = self.spatial_view.compute(cells, stamp)
-        return {k: res[k] for k in TEMPLATE_KEYS}
+        return {k: res[k] for k in Template.__annotations__}  # type: ignore[return-value]
 
-    def step_bits(self, bits: np.ndarray, stamp: float | None = None) -> FrontEndResult:
-        """C then D for one frame's on-bits."""
-        cells = self.cells(bits)
-        return FrontEndResult(bits, cells, self.template(cells, stamp))
-
-    def step(self, rgb: np.ndarray, frame: int, stamp: float | None = None) -> FrontEndResult | None:
-        """One camera frame; None for a frame that ``frame_stride`` removes."""
-        if not self.keep(frame):
-            return None
-        return self.step_bits(self.bits_of_frames([rgb])[0], stamp)
-
-    def warm_up(self) -> None:
-        """Compile B's, C's and D's kernels before the first frame."""
-        self.projector.warm_up()
-        self.neocortex.warm_up()
-        self.spatial_view.warm_up()
+    def warm_up(self, parts: Sequence[str] = ("projector", "neocortex", "spatial_view")) -> None:
+        """Build ``parts`` and compile the kernels of B's, C's and D's before the first frame (A's
+        backbone warms up for a batch size with ``extractor.warm_up``)."""
+        for name in parts:
+            part = getattr(self, name)
+            if name in ("projector", "neocortex", "spatial_view"):
+                part.warm_up()
 
 
 class LocalViewFrontEndConfig(LocalViewConfig):
@@ -178,7 +163,7 @@ class LocalViewFrontEnd:
         self.place: list[int] = []
         self.calibration = RunCalibration(self.config.calibration, platform or PlatformConfig())
 
-    def template(self, pixels: np.ndarray, stamp: float | None = None) -> dict[str, Any]:
+    def template(self, pixels: np.ndarray, stamp: float | None = None) -> Template:
         """``pixels``: HxW grey or HxWx3 colour, as OpenRatSLAM reads frames."""
         stamp = float(self.frame if stamp is None else stamp)
         n_before = len(self.cells.templates)
@@ -238,7 +223,7 @@ class LocalViewFrontEnd:
     def load_state_dict(self, st: dict[str, Any]) -> None:
         self.cells.load_state_dict(st["lv"])
         self.prev = int(st["prev"])
-        self.frame = int(st.get("frame", 0))
-        self.created = [(float(s), int(f)) for s, f in st.get("created", [])]
-        self.place = [int(x) for x in st.get("place", range(len(self.created)))]
-        self.calibration.load_state_dict(st.get("calibration", {}))
+        self.frame = int(st["frame"])
+        self.created = [(float(s), int(f)) for s, f in st["created"]]
+        self.place = [int(x) for x in st["place"]]
+        self.calibration.load_state_dict(st["calibration"])

@@ -284,7 +284,7 @@ class BinaryProjector:
         """Restore a :meth:`state_dict`; a running mean made with another ``centre_window`` or
         ``input_dim`` is refused."""
         cfg = self.config
-        window = int(state.get("centre_window", cfg.centre_window))
+        window = int(state["centre_window"])
         if window != cfg.centre_window:
             raise ValueError(f"projector.centre_window: the state was made with {window}, the config has "
                              f"{cfg.centre_window}")

@@ -77,6 +77,6 @@ class SequenceFilter:
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.history.clear()
-        for t, m in state.get("history", []):
+        for t, m in state["history"]:
             self.history.append((int(t), int(m)))
-        self.refused = int(state.get("refused", 0))
+        self.refused = int(state["refused"])

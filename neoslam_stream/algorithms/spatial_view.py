@@ -320,28 +320,26 @@ class SpatialViewCells:
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore a :meth:`state_dict`; a state made with other parameters (``params``) is
         refused, since its intervals would not be this config's."""
-        saved = state.get("params")
-        if saved is not None:
-            if len(saved) != len(STATE_PARAMS):
-                raise ValueError(f"the state's params hold {len(saved)} values, expected {len(STATE_PARAMS)}: "
-                                 f"{', '.join(STATE_PARAMS)}")
-            for name, value in zip(STATE_PARAMS, saved, strict=True):
-                ours = getattr(self.config, name)
-                if value != ours:
-                    raise ValueError(f"spatial_view.{name}: the state was made with {value}, the config has "
-                                     f"{ours}; resume with the checkpoint's value or start afresh")
+        saved = state["params"]
+        if len(saved) != len(STATE_PARAMS):
+            raise ValueError(f"the state's params hold {len(saved)} values, expected {len(STATE_PARAMS)}: "
+                             f"{', '.join(STATE_PARAMS)}")
+        for name, value in zip(STATE_PARAMS, saved, strict=True):
+            ours = getattr(self.config, name)
+            if value != ours:
+                raise ValueError(f"spatial_view.{name}: the state was made with {value}, the config has "
+                                 f"{ours}; resume with the checkpoint's value or start afresh")
         self.index.clear()
         self.unions = [BitMap(np.asarray(arr, dtype=np.int32)) for arr in state["unions"]]
-        # a state from before the index took intervals as they close had every one in it
-        indexed = state.get("indexed", range(len(self.unions) - 1))
+        indexed = state["indexed"]
         self._indexed = np.zeros(max(1024, len(indexed)), dtype=np.int64)
         self._n_indexed = 0
         for k in indexed:
             self._index_interval(int(k))
         self.index.compact()
-        self._all_closed = bool(state.get("all_closed", False))
+        self._all_closed = bool(state["all_closed"])
         self.interval_start = [int(x) for x in state["start"]]
-        stamps = np.asarray(state.get("stamps", self.interval_start), dtype=np.float64)
+        stamps = np.asarray(state["stamps"], dtype=np.float64)
         self._stamps = np.zeros(max(1024, len(stamps)), dtype=np.float64)
         self._stamps[:len(stamps)] = stamps
         self.interval_end = [int(x) for x in state["end"]]
@@ -354,8 +352,8 @@ class SpatialViewCells:
                 self.template_start[template] = start
         self.current_template = int(state["current_template"])
         self.t = int(state["t"])
-        self.sequence.load_state_dict(state.get("sequence", {}))
-        self.calibration.load_state_dict(state.get("calibration", {}))
+        self.sequence.load_state_dict(state["sequence"])
+        self.calibration.load_state_dict(state["calibration"])
 
 
 def _put(store: np.ndarray, k: int, value: Any) -> np.ndarray:

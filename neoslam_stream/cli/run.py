@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from ..config import FullRunConfig
 from .flags import ConfigFlags
 from .report import error, print_evaluation, print_summary
 
@@ -147,7 +148,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_router)
 
 
-def _start_viewer(cfg: Any, args: argparse.Namespace) -> tuple[Any, str]:
+def _start_viewer(cfg: FullRunConfig, args: argparse.Namespace) -> tuple[Any, str]:
     """``run --view``: the viewer as a child process (``neoslam view RUN_DIR``) that attaches as
     soon as the run's router is up; the run folder is fixed here so that both know it."""
     import subprocess

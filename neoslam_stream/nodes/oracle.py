@@ -8,10 +8,10 @@ from __future__ import annotations
 
 from typing import Any
 
-from ..algorithms.errors import InvalidInput
 from ..algorithms.oracle import OracleConfig, OracleTemplates
+from ..algorithms.records import Template
 from ..runtime.messages import Message
-from ..runtime.node import Node, Output, StageInputError
+from ..runtime.node import Node, Output
 from .topics import GROUNDTRUTH, VISUAL_TEMPLATE
 
 
@@ -28,13 +28,10 @@ class OracleNode(Node):
         self.loops = 0
 
     def process(self, topic: str, msg: Message) -> Output:
-        try:
-            res = self.oracle.compute(msg["pose"])
-        except InvalidInput as exc:
-            raise StageInputError(str(exc)) from None
+        res = self.oracle.compute(msg["pose"])
         self.loops += res["is_loop_closure"]
-        data = {"id": res["id"], "is_loop_closure": res["is_loop_closure"], "best_interval": -1,
-                "relative_rad": 0.0, "best_score": res["best_score"]}
+        data: Template = {"id": res["id"], "is_loop_closure": res["is_loop_closure"], "best_interval": -1,
+                          "relative_rad": 0.0, "best_score": res["best_score"]}
         if res["second_score"] is not None:
             data["second_score"] = res["second_score"]
         return [(VISUAL_TEMPLATE, msg.derive(VISUAL_TEMPLATE, data))]

@@ -9,11 +9,16 @@ from __future__ import annotations
 
 from typing import Any
 
+from ..config import FullRunConfig, load_config
+from ..runtime.config import RunConfig
 from ..runtime.node import NodeSpec
-from ..runtime.topology import PipelinePlan
+from ..runtime.plan import PipelinePlan
+from .chain import neoslam_chain
+from .run_folder import mcap_params
 from .topics import (
     ALGORITHM_TOPICS,
     BIN_FEATURES,
+    EXPERIENCE_MAP,
     EXPERIENCE_POSE,
     POSE_CELL_ACTION,
     SDR,
@@ -21,6 +26,7 @@ from .topics import (
     VISUAL_TEMPLATE,
 )
 
+FRONT_END_NODE = "neoslam_stream.nodes.frontend:make_node"
 RECORDER = "neoslam_stream.nodes.recorder:make_node"
 RATSLAM_NODES = "neoslam_stream.nodes.ratslam"
 ROS2_OUT = "neoslam_stream.nodes.ros2_out:make_node"
@@ -34,7 +40,7 @@ RECORDER_CAPACITY = {"visual_template": 4096, "experience_map/pose": 4096, "expe
 BACKEND_CAPACITY = {str(POSE_CELL_ACTION): 256, str(VISUAL_TEMPLATE): 64}
 
 
-def build_emulated(cfg: Any) -> PipelinePlan:
+def build_emulated(cfg: FullRunConfig) -> PipelinePlan:
     from ..runtime.emulated import EMULATED, emulated_pipeline
 
     specs = emulated_pipeline(cfg.emulated.tau_ms, cfg.emulated.busy)
@@ -50,7 +56,7 @@ def _backend_plan(specs: list[NodeSpec], entry_stages: list[str], source_topics:
                         capacity={**BACKEND_CAPACITY, **(capacity or {})})
 
 
-def batch_capacity(cfg: Any) -> dict[str, int]:
+def batch_capacity(cfg: FullRunConfig) -> dict[str, int]:
     """The rings along the front end's path hold a whole batch unless ``bus.capacity`` names them:
     after A, B and C always, and in a real-time run the image ring before A too. After A and B: a
     stage that fell behind takes up to ``run.max_batch`` frames at once and publishes them
@@ -72,15 +78,13 @@ def batch_capacity(cfg: Any) -> dict[str, int]:
     return out
 
 
-def recorder_params(cfg: Any) -> dict[str, Any]:
+def recorder_params(cfg: FullRunConfig) -> dict[str, Any]:
     """The recorder's parameters: with ``ros2_out.mcap``, the ROS 2 messages of outputs.mcap."""
-    ros = getattr(cfg, "ros2_out", None)
-    if ros is None or not ros.mcap:
-        return {}
-    return {"mcap": {**ros.message_params(), "map_period_s": ros.mcap_map_period_s}}
+    mcap = mcap_params(cfg.ros2_out)
+    return {} if mcap is None else {"mcap": mcap}
 
 
-def _backend_specs(cfg: Any, specs: list[NodeSpec]) -> None:
+def _backend_specs(cfg: FullRunConfig, specs: list[NodeSpec]) -> None:
     """Pose cells + experience map (+ visual odometry when the config asks for it), and the
     recorder that writes the run folder, hosted in the experience map's process."""
     if cfg.odometry == "visual":
@@ -89,42 +93,41 @@ def _backend_specs(cfg: Any, specs: list[NodeSpec]) -> None:
     specs.append(NodeSpec("pose_cells", f"{RATSLAM_NODES}:make_pose_cells_node", cfg.pose_cells.model_dump()))
     specs.append(NodeSpec("experience_map", f"{RATSLAM_NODES}:make_experience_map_node",
                           cfg.experience_map.model_dump()))
-    ros = getattr(cfg, "ros2_out", None)
+    ros = cfg.ros2_out
     specs.append(NodeSpec("recorder", RECORDER, recorder_params(cfg), host="experience_map",
                           capacity=dict(RECORDER_CAPACITY), observer=True))
-    if ros is not None and ros.format:
+    if ros.format:
         specs.append(NodeSpec("ros2_out", ROS2_OUT, {**ros.message_params(), "format": ros.format,
                                                      "domain_id": ros.domain_id},
                               host="experience_map", capacity=dict(RECORDER_CAPACITY), observer=True,
                               connect=list(ros.connect)))
 
 
-def _source_topics(cfg: Any) -> list[str]:
+def _source_topics(cfg: FullRunConfig) -> list[str]:
     """The source topics the back end reads: the source's odometry, unless the pipeline measures
     visual odometry itself (then the source's is not published: one odometry per frame)."""
     return ["image"] if cfg.odometry == "visual" else ["image", "odom"]
 
 
-def build_neoslam(cfg: Any) -> PipelinePlan:
+def front_end_specs(cfg: FullRunConfig) -> list[NodeSpec]:
+    """One node per stage of the NeoSLAM chain (``nodes/chain.py``), each with its stage's
+    sections of the front end's config, "auto" decided here, once per run."""
+    resolved = cfg.front_end().resolved()
+    # a stage's thread budget is its first section's ``threads`` (A's features, B's projector)
+    return [NodeSpec(stage.name, FRONT_END_NODE,
+                     {"call": stage.call, **{k: getattr(resolved, k).model_dump() for k in stage.sections}},
+                     threads=getattr(getattr(resolved, stage.sections[0]), "threads", 1))
+            for stage in neoslam_chain(resolved)]
+
+
+def build_neoslam(cfg: FullRunConfig) -> PipelinePlan:
     """NeoSLAM: A (features), B (projector), C (neocortex), D (spatial-view cells), RatSLAM back end."""
-    resolved = cfg.front_end().resolved()  # "auto" decided here, once per run
-    feats, proj = resolved.features.model_dump(), resolved.projector.model_dump()
-    if proj["device"] != "cpu":
-        # B in torch on a device: fused with A in one node there, so only bits leave the device
-        front = [NodeSpec("A", "neoslam_stream.nodes.features:make_fused_node",
-                          {"features": feats, "projector": proj}, threads=cfg.features.threads)]
-    else:
-        front = [NodeSpec("A", "neoslam_stream.nodes.features:make_node", feats, threads=cfg.features.threads),
-                 NodeSpec("B", "neoslam_stream.nodes.projector:make_node", proj, threads=cfg.projector.threads)]
-    specs = front + [
-        NodeSpec("C", "neoslam_stream.nodes.neocortex:make_node", cfg.neocortex.model_dump()),
-        NodeSpec("D", "neoslam_stream.nodes.spatial_view:make_node",
-                 {**cfg.spatial_view.model_dump(), "platform": cfg.platform.model_dump()})]
+    specs = front_end_specs(cfg)
     _backend_specs(cfg, specs)
     return _backend_plan(specs, ["A"], _source_topics(cfg), batch_capacity(cfg))
 
 
-def build_ratslam(cfg: Any) -> PipelinePlan:
+def build_ratslam(cfg: FullRunConfig) -> PipelinePlan:
     """The baseline: RatSLAM's local-view cells instead of NeoSLAM's front end."""
     specs = [NodeSpec("local_view", f"{RATSLAM_NODES}:make_local_view_node",
                       {**cfg.local_view.model_dump(), "platform": cfg.platform.model_dump()})]
@@ -132,7 +135,7 @@ def build_ratslam(cfg: Any) -> PipelinePlan:
     return _backend_plan(specs, ["local_view"], _source_topics(cfg))
 
 
-def oracle_params(cfg: Any) -> dict[str, Any]:
+def oracle_params(cfg: FullRunConfig) -> dict[str, Any]:
     """The oracle's parameters, ``radius_m: null`` resolved to the experience map's spacing in
     metres (``exp_delta_pc_threshold`` pose cells of ``pc_cell_x_size``; see ``algorithms.oracle``)."""
     params = cfg.oracle.model_dump()
@@ -141,7 +144,7 @@ def oracle_params(cfg: Any) -> dict[str, Any]:
     return params
 
 
-def build_oracle(cfg: Any) -> PipelinePlan:
+def build_oracle(cfg: FullRunConfig) -> PipelinePlan:
     """The back end with template ids from ground truth (``neoslam run --oracle-templates``): the
     oracle node replaces A, B, C and D, so the map shows what the back end makes of a perfect
     front end. Needs a source with ground truth."""
@@ -150,12 +153,9 @@ def build_oracle(cfg: Any) -> PipelinePlan:
     return _backend_plan(specs, ["oracle"], ["groundtruth", "odom"])
 
 
-RATSLAM_BRANCH_TOPICS = ("visual_template", "pose_cells/action", "experience_map/pose", "experience_map/map")
-#: the topics each NeoSLAM node publishes, in chain order (a branch's own stages publish them under
-#: its prefix)
-NEOSLAM_OUTPUTS = {"A": ("visual_features",), "B": ("bin_features",), "C": ("sdr",), "D": ("visual_template",),
-                   "pose_cells": ("pose_cells/action",),
-                   "experience_map": ("experience_map/pose", "experience_map/map")}
+RATSLAM_BRANCH_TOPICS = (VISUAL_TEMPLATE, POSE_CELL_ACTION, EXPERIENCE_POSE, EXPERIENCE_MAP)
+#: the topics the back end's nodes publish (a branch's own stages publish them under its prefix)
+BACK_END_OUTPUTS = {"pose_cells": (POSE_CELL_ACTION,), "experience_map": (EXPERIENCE_POSE, EXPERIENCE_MAP)}
 #: the paper-profile branch of ``neoslam compare``: its config, node prefix, topic prefix, sub-folder
 PAPER_PROFILE, PAPER_PREFIX, PAPER_DIR = "paper", "pp_", "paper"
 
@@ -179,41 +179,40 @@ def _branch(specs: list[NodeSpec], prefix: str, remap: dict[str, str], subdir: s
     return out
 
 
-def paper_profile_config(cfg: Any) -> Any:
+def paper_profile_config(cfg: FullRunConfig) -> FullRunConfig:
     """``cfg`` with every algorithm section of the paper's profile (``configs/paper.yaml``): the
     run, bus and source sections, and the odometry choice, stay ``cfg``'s."""
-    from ..config import load_config
-    from ..runtime.config import RunConfig
-
     paper = load_config(PAPER_PROFILE)
     algo = set(type(cfg).model_fields) - set(RunConfig.model_fields) - {"odometry"}
     return cfg.model_copy(update={k: getattr(paper, k) for k in algo})
 
 
-def paper_branch(cfg: Any, plan: PipelinePlan) -> list[NodeSpec]:
+def paper_branch(cfg: FullRunConfig, plan: PipelinePlan) -> list[NodeSpec]:
     """The NeoSLAM nodes of the paper's profile beside ``plan``'s (the run's config): the stages
     whose parameters, and whose upstream stages' parameters, are the same are shared (A's CNN runs
     once when only D differs); the first stage that differs and all after it run again as
     ``pp_<stage>``, publishing under ``paper/...``, with their own recorder writing into
     ``RUN_DIR/paper/``. Empty when the two profiles are the same."""
-    pp = build_neoslam(paper_profile_config(cfg))
+    paper = paper_profile_config(cfg)
+    pp = build_neoslam(paper)
+    outputs = {**{s.name: (s.gives,) for s in neoslam_chain(paper.front_end().resolved())}, **BACK_END_OUTPUTS}
     mine = {s.name: s for s in plan.stages}
     own: list[NodeSpec] = []
     shared = True
     for spec in pp.stages:
         if spec.factory.endswith("make_visual_odometry_node"):
             continue
-        if shared and spec.name in NEOSLAM_OUTPUTS and spec.name in mine and mine[spec.name].params == spec.params:
+        if shared and spec.name in outputs and spec.name in mine and mine[spec.name].params == spec.params:
             continue  # the same stage on the same input: its output serves both branches
         shared = False
         own.append(spec)
     if all(s.name == "recorder" for s in own):
         return []
-    remap = {t: f"{PAPER_DIR}/{t}" for s in own for t in NEOSLAM_OUTPUTS.get(s.name, ())}
+    remap = {str(t): f"{PAPER_DIR}/{t}" for s in own for t in outputs.get(s.name, ())}
     return _branch(own, PAPER_PREFIX, remap, PAPER_DIR)
 
 
-def build_compare(cfg: Any) -> PipelinePlan:
+def build_compare(cfg: FullRunConfig) -> PipelinePlan:
     """NeoSLAM with the run's config, NeoSLAM with the paper's profile and the RatSLAM baseline in
     one run: the image (and odometry) topics fan out to every branch.
 
@@ -227,7 +226,7 @@ def build_compare(cfg: Any) -> PipelinePlan:
     plan.stages += paper
     # the paper branch's own rings after A, B and C (its A reads the run's image ring)
     plan.capacity.update({f"{PAPER_DIR}/{t}": c for t, c in batch_capacity(cfg).items() if t != "image"})
-    plan.stages += _branch(rs.stages, "rs_", {t: f"ratslam/{t}" for t in RATSLAM_BRANCH_TOPICS}, "ratslam")
+    plan.stages += _branch(rs.stages, "rs_", {str(t): f"ratslam/{t}" for t in RATSLAM_BRANCH_TOPICS}, "ratslam")
     return plan
 
 
@@ -241,7 +240,7 @@ PIPELINES: dict[str, Any] = {
 }
 
 
-def build_plan(cfg: Any) -> PipelinePlan:
+def build_plan(cfg: FullRunConfig) -> PipelinePlan:
     """The plan of ``cfg.run.pipeline`` with the per-stage thread budgets of ``cfg.run.threads``."""
     try:
         builder = PIPELINES[cfg.run.pipeline]

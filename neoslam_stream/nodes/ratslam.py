@@ -19,16 +19,25 @@ from typing import Any
 
 import numpy as np
 
-from ..algorithms.backend import Action, CameraOdometry, PoseCellStage, PoseCellStageConfig, integrate
+from ..algorithms.backend import CameraOdometry, PoseCellStage, PoseCellStageConfig, integrate
 from ..algorithms.calibration import PlatformConfig
-from ..algorithms.errors import InvalidInput
 from ..algorithms.frontend import LocalViewFrontEnd, LocalViewFrontEndConfig
 from ..algorithms.ratslam.experience_map import ExperienceMap, ExperienceMapConfig
 from ..algorithms.ratslam.visual_odometry import VisualOdometryConfig
+from ..algorithms.records import Action
 from ..runtime.messages import Message, decode, encode
 from ..runtime.node import Node, Output, StageInputError
 from .camera import camera_pixels
-from .topics import EXPERIENCE_MAP, EXPERIENCE_POSE, IMAGE, ODOM, POSE_CELL_ACTION, VISUAL_TEMPLATE
+from .topics import (
+    EXPERIENCE_MAP,
+    EXPERIENCE_POSE,
+    IMAGE,
+    ODOM,
+    POSE_CELL_ACTION,
+    VISUAL_TEMPLATE,
+    record_data,
+    record_of,
+)
 
 
 class PoseCellsNode(Node):
@@ -55,15 +64,10 @@ class PoseCellsNode(Node):
     def _odo(self, msg: Message, via: Message | None = None) -> Output:
         dt = msg.data.get("dt")
         self.last_odom_frame = max(self.last_odom_frame, msg.frame)
-        try:
-            a = self.stage.on_odometry(float(msg["vtrans"]), float(msg["vrot"]),
-                                       None if dt is None else float(dt), msg.stamp)
-        except InvalidInput as exc:
-            raise StageInputError(str(exc)) from None
-        data = {"action": a.action, "src_id": a.src_id, "dst_id": a.dst_id, "relative_rad": a.relative_rad,
-                "vtrans": a.vtrans, "vrot": a.vrot, "dt": a.dt, "bias_wander": a.bias_wander}
+        a = self.stage.on_odometry(float(msg["vtrans"]), float(msg["vrot"]), None if dt is None else float(dt),
+                                   msg.stamp)
         base = via if via is not None else msg
-        out = base.derive(POSE_CELL_ACTION, data)
+        out = base.derive(POSE_CELL_ACTION, record_data(a))
         out.frame, out.stamp = msg.frame, msg.stamp
         return [(POSE_CELL_ACTION, out)]
 
@@ -139,7 +143,7 @@ class PoseCellsNode(Node):
         self.stage.load_state_dict(st)
         self.last_template_frame = int(st["last_template_frame"])
         self.max_odom_frame = int(st["max_odom_frame"])
-        self.last_odom_frame = int(st.get("last_odom_frame", -1))
+        self.last_odom_frame = int(st["last_odom_frame"])
         self.pending, self.templates_waiting = OrderedDict(), OrderedDict()
         for key, store in (("pending", self.pending), ("templates_waiting", self.templates_waiting)):
             for raw in st[key]:
@@ -171,7 +175,6 @@ class ExperienceMapNode(Node):
         self.em.warm_up()
 
     def process(self, topic: str, msg: Message) -> Output:
-        d = msg.data
         if msg.frame <= self.last_frame:
             # an action the map has integrated already: the pose cells re-send the frames after
             # their checkpoint when they restart after a crash; integrating them twice would move
@@ -180,16 +183,11 @@ class ExperienceMapNode(Node):
             return []
         # the topic's schema guarantees finite vtrans, vrot and dt (messages from the bus are
         # validated on decoding; those from a node in the same process are ours)
-        action = Action(int(d["action"]), int(d["src_id"]), int(d["dst_id"]), float(d.get("relative_rad", 0.0)),
-                        float(d["vtrans"]), float(d["vrot"]), float(d["dt"]), float(d.get("bias_wander", 0.0)))
-        try:
-            p = integrate(self.em, action, msg.stamp)
-        except InvalidInput as exc:
-            raise StageInputError(f"inconsistent action: {exc}") from None
+        p = integrate(self.em, record_of(Action, msg.data), msg.stamp)
         self.last_frame, self.last_stamp = msg.frame, msg.stamp
         # the pose relative to its experience as well, so that the recorder can re-express the
         # whole trajectory on the final, relaxed map (trajectory_map.tum)
-        return [(EXPERIENCE_POSE, msg.derive(EXPERIENCE_POSE, {"pose": p.pose, "exp_id": p.exp_id, "local": p.local}))]
+        return [(EXPERIENCE_POSE, msg.derive(EXPERIENCE_POSE, record_data(p)))]
 
     def flush(self) -> Output:
         ex = self.em.export()
@@ -212,10 +210,7 @@ class ExperienceMapNode(Node):
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
         self.em.load_state_dict(st["em"])
-        if "last_frame" in st:
-            self.last_frame, self.last_stamp = int(st["last_frame"]), float(st["last_stamp"])
-        elif st.get("trajectory"):  # a state saved before the recorder took the trajectory over
-            self.last_frame, self.last_stamp = int(st["trajectory"][-1][0]), float(st["trajectory"][-1][1])
+        self.last_frame, self.last_stamp = int(st["last_frame"]), float(st["last_stamp"])
 
 
 class LocalViewNode(Node):
@@ -233,11 +228,7 @@ class LocalViewNode(Node):
         self.front.warm_up()
 
     def process(self, topic: str, msg: Message) -> Output:
-        try:
-            data = self.front.template(camera_pixels(msg.data), msg.stamp)
-        except InvalidInput as exc:
-            raise StageInputError(str(exc)) from None
-        return [(VISUAL_TEMPLATE, msg.derive(VISUAL_TEMPLATE, data))]
+        return [(VISUAL_TEMPLATE, msg.derive(VISUAL_TEMPLATE, self.front.template(camera_pixels(msg.data), msg.stamp)))]
 
     def info(self) -> dict[str, Any]:
         out: dict[str, Any] = {"templates": len(self.front.cells.templates)}
@@ -264,10 +255,7 @@ class VisualOdometryNode(Node):
         self.vo = CameraOdometry(VisualOdometryConfig(**params))
 
     def process(self, topic: str, msg: Message) -> Output:
-        try:
-            vtrans, vrot, dt = self.vo.on_frame(camera_pixels(msg.data), msg.stamp)
-        except InvalidInput as exc:
-            raise StageInputError(str(exc)) from None
+        vtrans, vrot, dt = self.vo.on_frame(camera_pixels(msg.data), msg.stamp)
         return [(ODOM, msg.derive(ODOM, {"vtrans": vtrans, "vrot": vrot, "dt": dt}))]
 
 

@@ -30,6 +30,7 @@ import numpy as np
 
 from ..runtime.messages import Message
 from ..runtime.node import Node, Output
+from .run_rows import PoseRow, TemplateRow
 from .topics import EXPERIENCE_MAP, EXPERIENCE_POSE, VISUAL_TEMPLATE
 
 log = logging.getLogger("neoslam.ros2_out")
@@ -244,19 +245,18 @@ class Ros2Messages:
         return self.ts.generate_msgdef(msgtype, ros_version=2)[0]
 
 
-def replay(conv: Ros2Messages, templates: list[tuple], trajectory: list[tuple],
+def replay(conv: Ros2Messages, templates: list[TemplateRow], trajectory: list[PoseRow],
            map_export: dict[str, Any] | None) -> Iterator[RosOut]:
-    """The messages of a whole run from the recorder's rows (templates: frame, stamp, id, loop
-    closure...; trajectory: frame, stamp, x, y, theta, exp id), in frame order, the template of a
+    """The messages of a whole run from the run folder's rows, in frame order, the template of a
     frame before its pose, then the final map."""
-    events = sorted([(r[0], 0, r) for r in templates] + [(r[0], 1, r) for r in trajectory],
+    events = sorted([(r.frame, 0, r) for r in templates] + [(r.frame, 1, r) for r in trajectory],
                     key=lambda e: (e[0], e[1]))
     for _, kind, r in events:
         if kind == 0:
-            yield from conv.on_template(r[0], r[1], r[2], bool(r[3]))
+            yield from conv.on_template(r.frame, r.stamp, r.template_id, bool(r.is_loop_closure))
         else:
-            yield from conv.on_pose(r[0], r[1], r[2], r[3], r[4], r[5])
-    last = max([r[1] for r in trajectory] + [r[1] for r in templates] + [0.0])
+            yield from conv.on_pose(r.frame, r.stamp, r.x, r.y, r.theta, r.exp_id)
+    last = max([r.stamp for r in trajectory] + [r.stamp for r in templates] + [0.0])
     if map_export is not None:
         yield from conv.on_map(last, map_export)
     yield from conv.finish(last)

@@ -281,10 +281,6 @@ class ExperienceMap:
         self.link_set.add((a, b))
         self._loop_linked |= closes_loop
 
-    def set_experience(self, exp_id: int, rel_rad: float) -> None:
-        """Make an experience current: zero the accumulators, heading = its heading + rel_rad."""
-        self._set(self._idx(exp_id), rel_rad)
-
     def _set(self, e: int, rel_rad: float) -> None:
         if e == self._cur:
             return

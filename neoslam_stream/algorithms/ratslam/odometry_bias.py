@@ -165,12 +165,9 @@ class YawBiasEstimator:
                 "born": np.array([(k, h, t) for k, (h, t) in self.born.items()], dtype=np.float64).reshape(-1, 3)}
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
-        scalars = [float(v) for v in st["scalars"]]
-        scalars += [0.0] * (10 - len(scalars))  # a checkpoint from before the wander: not measured
         (self.bias, self.heading, self.t, self._sum_dg, self._sum_gg, self._last_sample_t,
-         samples, outliers, self._sum_q, pairs) = scalars[:10]
+         samples, outliers, self._sum_q, pairs) = (float(v) for v in st["scalars"])
         self.samples, self.outliers, self._pairs = int(samples), int(outliers), int(pairs)
-        self._history = deque((float(t), float(b)) for t, b in np.asarray(st.get("history", np.zeros((0, 2))),
-                                                                          dtype=np.float64).reshape(-1, 2))
-        self.last_template = int(st.get("last_template", -1))  # absent from older checkpoints
+        self._history = deque((float(t), float(b)) for t, b in np.asarray(st["history"], dtype=np.float64).reshape(-1, 2))
+        self.last_template = int(st["last_template"])
         self.born = {int(k): (float(h), float(t)) for k, h, t in np.asarray(st["born"], dtype=np.float64).reshape(-1, 3)}

@@ -1,0 +1,437 @@
+"""The run folder: the one writer of a run's outputs, called by the recorder node and the API alike.
+
+:class:`RunFolder` takes what the cores produce, frame by frame (a template, the map's pose, the
+ground truth) and the final map, and writes templates.csv, closures.csv (:data:`CLOSURES_HEADER`),
+trajectory.tum, map.json, trajectory_map.tum (every pose re-expressed on the final map:
+:func:`poses_on_map`) and, with ``mcap``, ``outputs.mcap`` (docs/ros2.md). Its rows are its state,
+so checkpoints, ``--resume`` and crash restarts give an uninterrupted run's files.
+
+Why it writes as it does (docs/reliability.md, docs/evaluation.md): row files are appended row by
+row, each noted first in a journal (:data:`JOURNAL`: a line ``<tag> <frame>`` per row, the tag
+naming the file), so a killed worker loses no row and its restart neither loses nor doubles one;
+map.json and trajectory_map.tum are replaced atomically at the end. A closure row waits for its
+frame's ground truth (at most ``GT_WAIT_ROWS`` closures). An ``OSError`` (disk full) is logged once
+per file and counted; unwritten rows are retried at most every ``RETRY_S`` seconds and at the end,
+and what was written stays intact.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections import deque
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..algorithms.ratslam.experience_map import poses_on_map
+from ..algorithms.records import MapPose, Template
+from ..runtime.files import AppendFile, complete_lines, describe_write_error, write_atomic
+from .run_rows import (
+    CLOSURES,
+    ROW_FILES,
+    TEMPLATES,
+    TRAJECTORY,
+    ClosureRow,
+    PoseRow,
+    RowFile,
+    TemplateRow,
+    WaitingClosure,
+    trajectory_line,
+)
+
+log = logging.getLogger("neoslam.recorder")
+
+#: the journal of the rows appended (see the module docstring)
+JOURNAL = ".recorder.journal"
+#: the trajectory re-expressed on the final map (written at the end, see the module docstring)
+TRAJECTORY_ON_MAP = "trajectory_map.tum"
+#: closure rows that wait for ground truth before they are written without it when none has come
+GT_WAIT_ROWS = 64
+#: the outputs as ROS 2 messages (docs/ros2.md)
+MCAP = "outputs.mcap"
+#: true positions kept for frames whose template has not come yet, at most
+GT_KEEP = 4096
+
+
+def mcap_params(ros2_out: Any) -> dict[str, Any] | None:
+    """outputs.mcap's ROS 2 message parameters from a run's ``ros2_out`` section (None: no MCAP)."""
+    if not ros2_out.mcap:
+        return None
+    return {**ros2_out.message_params(), "map_period_s": ros2_out.mcap_map_period_s}
+
+
+class RunFolder:
+    """Writes templates.csv and trajectory.tum into ``run_dir`` row by row, closures.csv as each
+    closure's ground truth settles, map.json and trajectory_map.tum at the end. Without a
+    ``run_dir`` it keeps the rows in memory only. ``run_id`` (a pipeline run's): a restart of the
+    same run keeps the rows its journal names; "" (in-process): no journal. ``counters`` is the
+    host's counter dict (``rows_already_written``, ``write_errors``)."""
+
+    #: seconds between two attempts to write rows that could not be written (disk full)
+    RETRY_S = 1.0
+
+    def __init__(self, run_dir: str = "", run_id: str = "", mcap: dict[str, Any] | None = None,
+                 counters: dict[str, int] | None = None) -> None:
+        self.run_dir, self.run_id = run_dir, run_id
+        #: the ROS 2 message parameters of outputs.mcap (None: no MCAP; nodes.ros2_out)
+        self.mcap = mcap
+        self.counters = counters if counters is not None else {}
+        self.rows: dict[RowFile, list] = {f: [] for f in ROW_FILES}
+        self.map_export: dict[str, Any] | None = None
+        #: frame -> (stamp, experience id, dx, dy, dtheta in its frame) for trajectory_map.tum
+        self.local_poses: dict[int, tuple[float, int, float, float, float]] = {}
+        #: closure rows waiting for the ground truth of their frame
+        self.closures_waiting: list[WaitingClosure] = []
+        #: the frame that created each template / opened each of D's intervals
+        self.template_first: dict[int, int] = {}
+        self.interval_first: dict[int, int] = {}
+        #: true (x, y) of those first frames, and of frames whose template has not come yet
+        self.places: dict[int, tuple[float, float]] = {}
+        self.gt: dict[int, tuple[float, float]] = {}
+        self.gt_last_frame = -1
+        self.last_template_frame = -1
+        self._first_frames: set[int] = set()
+        self._files: dict[RowFile, AppendFile] | None = None
+        self._journal: AppendFile | None = None
+        #: rows to append, in order: (file, frame, line)
+        self._backlog: deque[tuple[RowFile, int, bytes]] = deque()
+        #: after a restart, the frames each file held already (rows for them are not written again)
+        self._written: dict[RowFile, set[int]] = {f: set() for f in ROW_FILES}
+        self._retry_at = 0.0
+        self._logged: set[str] = set()
+
+    @property
+    def templates(self) -> list[TemplateRow]:
+        return self.rows[TEMPLATES]
+
+    @property
+    def trajectory(self) -> list[PoseRow]:
+        return self.rows[TRAJECTORY]
+
+    @property
+    def closures(self) -> list[ClosureRow]:
+        return self.rows[CLOSURES]
+
+    # ------------------------------------------------------------------ what the cores give
+    def on_template(self, frame: int, stamp: float, t: Template) -> None:
+        """A frame's visual template: its row, the first frame of its template (and interval),
+        and a closure row when it closed a loop."""
+        self._add(TEMPLATES, TemplateRow(frame, stamp, int(t["id"]), int(bool(t.get("is_loop_closure", False))),
+                                         int(t.get("best_interval", -1)), t.get("best_score", -1)))
+        tid = int(t["id"])
+        interval = t.get("interval")
+        firsts = []
+        if tid not in self.template_first:
+            self.template_first[tid] = frame
+            firsts.append(frame)
+        if interval is not None and int(interval) not in self.interval_first:
+            self.interval_first[int(interval)] = frame
+            firsts.append(frame)
+        if firsts:
+            self._first_frames.add(frame)
+            if frame in self.gt:
+                self.places[frame] = self.gt[frame]
+        self.last_template_frame = max(self.last_template_frame, frame)
+        if t.get("is_loop_closure"):
+            best = int(t.get("best_interval", -1))
+            matched = self.interval_first.get(best, -1) if interval is not None and best >= 0 \
+                else self.template_first.get(tid, -1)
+            self.closures_waiting.append(WaitingClosure(frame, stamp, tid, matched, self.gt.get(frame),
+                                                        t.get("best_score"), t.get("second_score")))
+        # true positions of frames whose template has come are needed only as places
+        for g in [g for g in self.gt if g < frame]:
+            del self.gt[g]
+        self._settle_closures()
+
+    def on_pose(self, frame: int, stamp: float, p: MapPose) -> None:
+        """The map's pose of the robot after a frame (and, for trajectory_map.tum, its pose in its
+        experience's frame)."""
+        x, y, th = (float(v) for v in p.pose)
+        if p.local is not None:  # kept even for a frame written before a restart
+            dx, dy, dth = (float(v) for v in p.local)
+            self.local_poses[frame] = (stamp, int(p.exp_id), dx, dy, dth)
+        self._add(TRAJECTORY, PoseRow(frame, stamp, x, y, th, int(p.exp_id)))
+
+    def on_groundtruth(self, frame: int, pose: Any) -> None:
+        """The true pose of a frame: the places of template firsts and the closures' distances."""
+        xy = (float(pose[0]), float(pose[1]))
+        self.gt_last_frame = max(self.gt_last_frame, frame)
+        if frame in self._first_frames:
+            self.places[frame] = xy
+        if frame >= self.last_template_frame:
+            self.gt[frame] = xy
+            if len(self.gt) > GT_KEEP:  # no template for a long time (a stalled front end): bounded
+                del self.gt[min(self.gt)]
+        self.closures_waiting = [r._replace(true_xy=xy) if r.true_xy is None and r.frame == frame else r
+                                 for r in self.closures_waiting]
+        self._settle_closures()
+
+    def on_map(self, export: dict[str, Any] | None) -> None:
+        """The whole map (``ExperienceMap.export()``): map.json and trajectory_map.tum at the end."""
+        self.map_export = export
+
+    def _settle_closures(self, final: bool = False) -> None:
+        """Write the waiting closure rows, in order, whose true distance is known or will never be."""
+        while self.closures_waiting:
+            r = self.closures_waiting[0]
+            pos, place = r.true_xy, self.places.get(r.matched_frame)
+            no_gt = (self.gt_last_frame > r.frame and pos is None) or \
+                (self.gt_last_frame < 0 and len(self.closures_waiting) > GT_WAIT_ROWS)
+            if not (final or no_gt or (pos is not None and place is not None)
+                    or (pos is not None and r.matched_frame < self.gt_last_frame)):
+                return
+            self.closures_waiting.pop(0)
+            dist = None if pos is None or place is None else float(np.hypot(pos[0] - place[0], pos[1] - place[1]))
+            self._add(CLOSURES, ClosureRow(r.frame, r.stamp, r.template_id, r.matched_frame, dist, r.score,
+                                           r.second_score))
+
+    def _add(self, file: RowFile, row: Any) -> None:
+        if not self.run_dir:
+            self.rows[file].append(row)
+            return
+        self._open()
+        if row.frame in self._written[file]:  # written before this worker was restarted
+            self.counters["rows_already_written"] = self.counters.get("rows_already_written", 0) + 1
+            return
+        self.rows[file].append(row)
+        self._backlog.append((file, row.frame, file.line(row).encode()))
+        if len(self._backlog) == 1 or time.monotonic() >= self._retry_at:
+            self._write_backlog()
+
+    # ------------------------------------------------------------------ files
+    def _path(self, name: str) -> Path:
+        return Path(self.run_dir) / name
+
+    def _open(self) -> None:
+        """Open the files at the first row (or at the end): afresh for a new run, as they are for a
+        restart of this run's worker (see the module docstring)."""
+        if self._files is not None or time.monotonic() < self._retry_at:
+            return
+        try:
+            Path(self.run_dir).mkdir(parents=True, exist_ok=True)
+            journal = complete_lines(self._path(JOURNAL)) if self.run_id else []
+            if journal and journal[0] == f"run {self.run_id}\n".encode():
+                self._reopen(journal)
+            else:
+                self._create()
+        except OSError as exc:
+            self._failed(Path(self.run_dir), exc)
+            return
+        # the rows held in memory (the restored state's, and any that came while the files could not
+        # be opened) that are not in the files yet: all of them for new files
+        self._backlog.clear()
+        for f in ROW_FILES:
+            for r in self.rows[f]:
+                if r.frame not in self._written[f]:
+                    self._backlog.append((f, r.frame, f.line(r).encode()))
+        self._write_backlog()
+
+    def _create(self) -> None:
+        if self.run_id:
+            self._journal = AppendFile(self._path(JOURNAL), truncate=True)
+            self._journal.append(f"run {self.run_id}\n".encode())
+        files = {f: AppendFile(self._path(f.name), truncate=True) for f in ROW_FILES}
+        for f in ROW_FILES:
+            if f.header:
+                files[f].append(f.header.encode())
+        self._files = files
+
+    def _reopen(self, journal: list[bytes]) -> None:
+        """A restart of this run's worker: keep the complete rows the journal knows, cut the rest."""
+        by_tag = {f.tag: f for f in ROW_FILES}
+        entries: list[tuple[RowFile, int]] = []
+        for raw in journal[1:]:
+            parts = raw.split()
+            if len(parts) == 2 and parts[0].decode(errors="replace") in by_tag and parts[1].isdigit():
+                entries.append((by_tag[parts[0].decode()], int(parts[1])))
+        files, keep = {}, {}
+        for f in ROW_FILES:
+            path, header = self._path(f.name), f.header.encode()
+            lines = complete_lines(path) if path.exists() else []
+            has_header = not header or (bool(lines) and lines[0] == header)
+            rows = lines[1:] if header and has_header else (lines if not header else [])
+            keep[f] = min(len(rows), sum(1 for e, _ in entries if e is f))
+            files[f] = AppendFile(path)
+            files[f].cut(len(header) + sum(map(len, rows[:keep[f]])) if has_header else 0)
+            if not has_header:
+                files[f].append(header)
+            if f is TEMPLATES:
+                # the templates' first frames, for the matched frames of later closures (a restart
+                # without a checkpoint lost them; their true positions stay unknown: empty distances)
+                for raw in rows[:keep[f]]:
+                    cols = raw.split(b",")
+                    if len(cols) >= 3 and cols[0].isdigit() and cols[2].lstrip(b"-").isdigit():
+                        self.template_first.setdefault(int(cols[2]), int(cols[0]))
+        self._first_frames |= set(self.template_first.values())
+        kept, seen = [], dict.fromkeys(ROW_FILES, 0)
+        for f, frame in entries:
+            if seen[f] < keep[f]:
+                seen[f] += 1
+                kept.append((f, frame))
+                self._written[f].add(frame)
+        write_atomic(self._path(JOURNAL),
+                     (f"run {self.run_id}\n" + "".join(f"{f.tag} {n}\n" for f, n in kept)).encode())
+        self._journal = AppendFile(self._path(JOURNAL))
+        self._files = files
+        log.warning("recorder: restarted; kept %d template rows, %d trajectory rows and %d closure rows "
+                    "written before", keep[TEMPLATES], keep[TRAJECTORY], keep[CLOSURES])
+
+    def _write_backlog(self) -> None:
+        """Append the waiting rows in order (journal entry first, then the row); stop at a failure,
+        leaving every file with complete rows only, and try again ``RETRY_S`` later."""
+        if self._files is None:
+            return
+        while self._backlog:
+            f, frame, line = self._backlog[0]
+            target = self._files[f]
+            try:
+                if self._journal is not None:
+                    before = self._journal.size
+                    self._journal.append(f"{f.tag} {frame}\n".encode())
+                try:
+                    target.append(line)
+                except OSError:
+                    if self._journal is not None:
+                        self._journal.cut(before)
+                    raise
+            except OSError as exc:
+                self._failed(target.path, exc)
+                return
+            self._backlog.popleft()
+
+    def _failed(self, path: Path, exc: OSError) -> None:
+        self.counters["write_errors"] = self.counters.get("write_errors", 0) + 1
+        self._retry_at = time.monotonic() + self.RETRY_S
+        if str(path) not in self._logged:
+            self._logged.add(str(path))
+            log.error("recorder: %s (rows wait and are tried again; further errors are counted)",
+                      describe_write_error(path, exc))
+
+    def finish(self) -> None:
+        """The end of the run: the waiting closures, every row, map.json, trajectory_map.tum and
+        outputs.mcap."""
+        self._settle_closures(final=True)
+        if not self.run_dir:
+            return
+        if self._files is None and not (any(self.rows.values()) or (self.map_export or {}).get("nodes")):
+            self._no_outputs()  # a run that failed before its first frame leaves no empty results
+            return
+        self._retry_at = 0.0  # the end: one more attempt at whatever is waiting
+        self._open()
+        self._write_backlog()
+        if self._backlog:
+            log.error("recorder: %d rows could not be written to %s", len(self._backlog), self.run_dir)
+        for f in (self._files or {}).values():
+            try:
+                f.sync()
+            except OSError as exc:
+                self._failed(f.path, exc)
+        if self.map_export is not None:
+            self._write_whole("map.json", json.dumps(self.map_export).encode())
+            if self.local_poses:
+                self._write_whole(TRAJECTORY_ON_MAP, self.trajectory_on_map().encode())
+        if self.mcap is not None:
+            self._write_mcap()
+
+    def _write_whole(self, name: str, data: bytes) -> None:
+        try:
+            write_atomic(self._path(name), data)
+        except OSError as exc:  # the previous file, if any, is intact
+            self._failed(self._path(name), exc)
+
+    def _no_outputs(self) -> None:
+        """Nothing was recorded: no output file is created, and those an earlier run left in this
+        folder go (a restart of this run's worker keeps its files, which its journal names)."""
+        journal = complete_lines(self._path(JOURNAL)) if self.run_id else []
+        if journal and journal[0] == f"run {self.run_id}\n".encode():
+            return
+        for name in (*(f.name for f in ROW_FILES), JOURNAL, "map.json", TRAJECTORY_ON_MAP, MCAP):
+            try:
+                self._path(name).unlink(missing_ok=True)
+            except OSError as exc:
+                self._failed(self._path(name), exc)
+
+    def trajectory_on_map(self) -> str:
+        """trajectory_map.tum's text: the frames' poses on the final map (``trajectory.tum``'s
+        format, in frame order)."""
+        nodes = {int(n["id"]): (float(n["x"]), float(n["y"]), float(n["theta"]))
+                 for n in (self.map_export or {}).get("nodes", [])}
+        frames = sorted(self.local_poses)
+        rows = [self.local_poses[f] for f in frames]
+        poses = poses_on_map(nodes, np.array([r[1] for r in rows], dtype=np.int64),
+                             np.array([r[2:] for r in rows], dtype=np.float64))
+        return "".join(trajectory_line(PoseRow(f, r[0], *p, -1))
+                       for f, r, p in zip(frames, rows, poses.tolist(), strict=True))
+
+    def _write_mcap(self) -> None:
+        """outputs.mcap: the run's outputs as the ROS 2 messages of the live output, rebuilt from
+        the rows (so a restarted worker's file is whole), written at the end, atomically."""
+        from .ros2_out import Ros2Messages, mcap_bytes, replay
+
+        conv = Ros2Messages(**self.mcap)
+        self._write_whole(MCAP, mcap_bytes(conv, replay(conv, self.templates, self.trajectory, self.map_export)))
+
+    def close(self) -> None:
+        for f in [*(self._files or {}).values(), self._journal]:
+            if f is not None:
+                f.close()
+        self._files, self._journal = None, None
+
+    def info(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"template_rows": len(self.templates), "trajectory_rows": len(self.trajectory),
+                               "closure_rows": len(self.closures)}
+        if self._backlog:
+            out["rows_not_written"] = len(self._backlog)
+        return out
+
+    def state_dict(self) -> dict[str, Any]:
+        def ints(d: dict[int, int]) -> np.ndarray:
+            return np.array(sorted(d.items()), dtype=np.int64).reshape(-1, 2)
+
+        def where(d: dict[int, tuple[float, float]]) -> np.ndarray:
+            return np.array([(k, *v) for k, v in sorted(d.items())], dtype=np.float64).reshape(-1, 3)
+
+        return {"templates": [list(r) for r in self.templates], "trajectory": [list(r) for r in self.trajectory],
+                "closures": [list(r) for r in self.closures],
+                "closures_waiting": [[*r[:4], None if r.true_xy is None else list(r.true_xy), r.score, r.second_score]
+                                     for r in self.closures_waiting],
+                "template_first": ints(self.template_first), "interval_first": ints(self.interval_first),
+                "places": where(self.places), "gt": where(self.gt), "gt_last_frame": self.gt_last_frame,
+                "local_poses": np.array([(f, *r) for f, r in sorted(self.local_poses.items())],
+                                        dtype=np.float64).reshape(-1, 6),
+                "last_template_frame": self.last_template_frame}
+
+    def load_state_dict(self, st: dict[str, Any]) -> None:
+        self.rows[TEMPLATES] = [TemplateRow(int(r[0]), float(r[1]), int(r[2]), int(r[3]), int(r[4]), r[5])
+                                for r in st["templates"]]
+        self.rows[TRAJECTORY] = [PoseRow(int(r[0]), float(r[1]), float(r[2]), float(r[3]), float(r[4]), int(r[5]))
+                                 for r in st["trajectory"]]
+        self.rows[CLOSURES] = [ClosureRow(int(r[0]), float(r[1]), int(r[2]), int(r[3]),
+                                          None if r[4] is None else float(r[4]), r[5], r[6]) for r in st["closures"]]
+        self.closures_waiting = [WaitingClosure(int(r[0]), float(r[1]), int(r[2]), int(r[3]),
+                                                None if r[4] is None else (float(r[4][0]), float(r[4][1])), r[5], r[6])
+                                 for r in st["closures_waiting"]]
+        self.template_first = {int(k): int(v) for k, v in np.asarray(st["template_first"], dtype=np.int64).reshape(-1, 2)}
+        self.interval_first = {int(k): int(v) for k, v in np.asarray(st["interval_first"], dtype=np.int64).reshape(-1, 2)}
+        self.places = {int(r[0]): (float(r[1]), float(r[2]))
+                       for r in np.asarray(st["places"], dtype=np.float64).reshape(-1, 3)}
+        self.gt = {int(r[0]): (float(r[1]), float(r[2])) for r in np.asarray(st["gt"], dtype=np.float64).reshape(-1, 3)}
+        self.local_poses = {int(r[0]): (float(r[1]), int(r[2]), float(r[3]), float(r[4]), float(r[5]))
+                            for r in np.asarray(st["local_poses"], dtype=np.float64).reshape(-1, 6)}
+        self.gt_last_frame = int(st["gt_last_frame"])
+        self.last_template_frame = int(st["last_template_frame"])
+        self._first_frames = set(self.template_first.values()) | set(self.interval_first.values())
+
+    def new_session(self) -> None:
+        """A new session on an old map: this session's outputs only; an old session's templates may
+        be matched again, but a new session's frame numbers start afresh, so its first frames are
+        no places of this one."""
+        for f in ROW_FILES:
+            self.rows[f] = []
+        self.map_export, self.local_poses, self.closures_waiting = None, {}, []
+        self.template_first, self.interval_first, self.places, self.gt = {}, {}, {}, {}
+        self._first_frames = set()
+        self.gt_last_frame = self.last_template_frame = -1

@@ -1,4 +1,4 @@
-"""The lever study of the mapping settings -> studies/results/maps.json (docs/levers.md).
+"""The lever study of the mapping settings -> studies/results/maps.json (studies/levers.md).
 
 Each lever of studies/settings/levers.yaml is measured ALONE against the paper profile
 (``configs/paper.yaml``) and the kept levers together (the default), on:

@@ -136,7 +136,7 @@ def choose(res: dict[str, Any]) -> dict[str, Any]:
 
 
 def table(res: dict[str, Any]) -> str:
-    """docs/mapping.md's table: online / final-map error and the map's seconds per part."""
+    """studies/mapping_choices.md's table: online / final-map error and the map's seconds per part."""
     chosen = res["rule"]["chosen"]
     cols = ("sweeps_20", "sweeps_300", "sweeps_1000", "least_squares", chosen)
     lines = [f"| part | | 20 sweeps | 300 sweeps | 1000 sweeps | least squares | {chosen} (chosen) |",
@@ -184,7 +184,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--worlds", default="1,3,4,0,2", help="synthetic worlds (seeds), comma-separated")
     ap.add_argument("--out", default=str(_paths.RESULTS / "relaxation.json"))
-    ap.add_argument("--table", action="store_true", help="print docs/mapping.md's table from --out and stop")
+    ap.add_argument("--table", action="store_true", help="print studies/mapping_choices.md's table from --out and stop")
     ap.add_argument("--scale", action="store_true",
                     help="only time one solve of each on maps of 1000-20000 experiences -> relaxation_scale.json")
     args = ap.parse_args()

@@ -1,5 +1,5 @@
 """Solves of the experience map beside the least squares, measured before the default's
-``bias_walk`` existed -> studies/results/relaxation_models.json (docs/mapping.md: "A pose-graph solve",
+``bias_walk`` existed -> studies/results/relaxation_models.json (studies/mapping_choices.md: "A pose-graph solve",
 "A wandering bias in the solve").
 
 The least-squares solve (``relaxation: least_squares``, algorithms/ratslam/graph_solve.py) takes the

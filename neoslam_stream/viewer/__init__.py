@@ -2,7 +2,7 @@
 
 :func:`view` records a run into one rerun recording (``RUN_DIR/view.rrd``, and a window when a
 display is there): live while the run runs (:mod:`.live`), else from its files (:mod:`.files`);
-:mod:`.recording` is what is shown and where. What each view holds: docs/runtime.md.
+:mod:`.recording` is what is shown and where. What each view holds: docs/end_to_end.md.
 """
 
 from __future__ import annotations

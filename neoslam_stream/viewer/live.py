@@ -101,7 +101,7 @@ class LiveLogger:
         try:
             msg = decode(payload, expected_type="image")
             rgb = decode_rgb(msg.data)
-        except ValueError as exc:  # MessageError and StageInputError are ValueErrors
+        except ValueError as exc:  # MessageError and InvalidInput are ValueErrors
             self._bad("image", exc)
             return
         self.view.image(msg.frame, msg.stamp, rgb)

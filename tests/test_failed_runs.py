@@ -49,8 +49,8 @@ def test_a_stage_that_refuses_its_state_makes_a_failed_report(tmp_path, monkeypa
     """The supervisor's real start-up, with processes that only pretend: the monitor comes up, every
     worker exits with EXIT_STATE_REFUSED (a checkpoint made with other parameters)."""
     from neoslam_stream.nodes.pipelines import build_plan
-    from neoslam_stream.runtime.procs import EXIT_STATE_REFUSED
     from neoslam_stream.runtime.topology import RunError, Supervisor
+    from neoslam_stream.runtime.worker import EXIT_STATE_REFUSED
 
     cfg = load_config("default")
     sup = Supervisor(cfg, build_plan(cfg), tmp_path / "run", source_factory="neoslam_stream.sources:SOURCES")

@@ -392,8 +392,8 @@ def test_a_stage_that_refuses_its_saved_state_ends_the_worker_with_one_line(tmp_
 
 def test_the_supervisor_does_not_restart_a_worker_that_refused_its_state(tmp_path, monkeypatch):
     from neoslam_stream.nodes.pipelines import build_plan
-    from neoslam_stream.runtime.procs import EXIT_STATE_REFUSED
     from neoslam_stream.runtime.topology import RunError, Supervisor
+    from neoslam_stream.runtime.worker import EXIT_STATE_REFUSED
 
     cfg = load_config("default")
     sup = Supervisor(cfg, build_plan(cfg), tmp_path / "run")

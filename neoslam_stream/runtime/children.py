@@ -19,7 +19,8 @@ from .bus import key_for
 from .checkpoint import latest_stage_state
 from .messages import Message, encode
 from .plan import RunError
-from .procs import EXIT_STATE_REFUSED, monitor_entry, worker_entry
+from .procs import monitor_entry, worker_entry
+from .worker import EXIT_STATE_REFUSED
 
 log = logging.getLogger("neoslam.topology")
 

@@ -32,16 +32,19 @@ from typing import Any
 from .bus import Bus, ControlGate, InputQueue, key_for, open_session, wait_for_peers
 from .messages import Message, MessageError, Topic, decode, encode, register_topics
 from .node import NodeSpec, is_input_error
-from .procs import EXIT_STATE_REFUSED
 from .worker_cuts import CheckpointCuts
 from .worker_stats import StageRuntime, WorkerStats
 
 log = logging.getLogger("neoslam.worker")
 
+#: a worker's exit code when a stage refused the saved state it was given (a checkpoint or a map
+#: made with other parameters): restarting cannot help, so the supervisor stops the run at once
+EXIT_STATE_REFUSED = 3
 
 
 class StateRefused(RuntimeError):
     """A stage refused the saved state it was given; the text says which stage, file and why."""
+
 
 @dataclass
 class WorkerSpec:

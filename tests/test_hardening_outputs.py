@@ -136,7 +136,7 @@ def test_a_bug_in_a_node_is_counted_apart_from_bad_input_and_the_worker_goes_on(
         for f, what in enumerate(kinds):
             w.handle("probe", _probe(f, what), time.time())
     st = _stats(w)
-    node = w.stages[0].adapter
+    node = w.stages[0].node
     assert node.seen == [f for f, what in enumerate(kinds) if what == "ok"]  # it went on
     # bad input: the algorithm's InvalidInput and the node's StageInputError, each once
     assert st["errors"] == 2 and sum(st["error_causes"].values()) == 2
@@ -185,7 +185,7 @@ def test_a_bad_frame_in_a_micro_batch_is_counted_once(tmp_path):
     assert st["errors"] == 2
     assert sum(st["error_causes"].values()) == st["errors"]  # each bad frame once, not batch + frame
     assert st["received"] == len(kinds) and st["processed"] == 4
-    assert w.stages[0].adapter.seen == [0, 2, 4, 5]
+    assert w.stages[0].node.seen == [0, 2, 4, 5]
 
 
 def test_realtime_workers_batch_the_frames_waiting_in_their_ring(tmp_path):
@@ -200,7 +200,7 @@ def test_realtime_workers_batch_the_frames_waiting_in_their_ring(tmp_path):
     for f in range(5):  # the ring keeps the newest three
         w.queue.put("probe", _probe(f), time.time())
     w.handle(*w.queue.get(0.1))
-    assert w.stages[0].adapter.batches == [[2, 3, 4]]
+    assert w.stages[0].node.batches == [[2, 3, 4]]
     assert _stats(w)["processed"] == 3
     cfg = load_config("default", {"run": {"mode": "realtime", "max_batch": 5, "live": False}})
     sup = Supervisor(cfg, build_plan(cfg), tmp_path / "run")
@@ -213,7 +213,7 @@ def test_a_real_time_worker_warms_its_batching_stages_up_before_the_first_frame(
     for lossless, batchable, expected in ((False, True, 6), (False, False, None), (True, True, None)):
         w = _worker(tmp_path, NodeSpec("probe", f"{__name__}:make_probe", {"batchable": batchable}),
                     max_batch=6, lossless=lossless)
-        assert getattr(w.stages[0].adapter, "warmed", None) == expected
+        assert getattr(w.stages[0].node, "warmed", None) == expected
 
 
 def test_a_stage_with_a_batch_wait_pairs_a_lone_frame_only_while_frames_come_often(tmp_path):
@@ -234,25 +234,25 @@ def test_a_stage_with_a_batch_wait_pairs_a_lone_frame_only_while_frames_come_oft
     w, waited = worker({"probe": 2000.0})
     w.handle("probe", _probe(0), t0 - 0.02)  # no arrival seen yet: no wait
     w.handle("probe", _probe(1), t0 - 0.01)  # one arrival seen: no interval known yet
-    assert not waited and w.stages[0].adapter.seen == [0, 1]  # one at a time (no batch call)
+    assert not waited and w.stages[0].node.seen == [0, 1]  # one at a time (no batch call)
     # frames 0 and 1 came 10 ms apart (< 2 s): frame 2, alone, waits for frame 3 and takes it along
     later = threading.Timer(0.05, lambda: w.queue.put("probe", _probe(3), time.time()))
     later.start()
     w.handle("probe", _probe(2), time.time())
     later.join()
-    assert waited == [1] and w.stages[0].adapter.batches == [[2, 3]]
+    assert waited == [1] and w.stages[0].node.batches == [[2, 3]]
 
     # frames that came 3 s apart (> 2 s): a lone frame does not wait
     w, waited = worker({"probe": 2000.0})
     for f in range(3):
         w.handle("probe", _probe(f), t0 - 6 + 3 * f)
-    assert not waited and w.stages[0].adapter.seen == [0, 1, 2] and not w.stages[0].adapter.batches
+    assert not waited and w.stages[0].node.seen == [0, 1, 2] and not w.stages[0].node.batches
 
     # a stage not named waits for nothing
     w, waited = worker({"other": 2000.0})
     for f in range(3):
         w.handle("probe", _probe(f), t0 + 0.001 * f)
-    assert not waited and w.stages[0].adapter.seen == [0, 1, 2] and not w.stages[0].adapter.batches
+    assert not waited and w.stages[0].node.seen == [0, 1, 2] and not w.stages[0].node.batches
 
 
 def test_batch_waits_reach_the_workers_of_the_stages_they_name(tmp_path):

@@ -1,6 +1,6 @@
-"""Saving and loading adapter state files, atomically and without pickle.
+"""Saving and loading node state files, atomically and without pickle.
 
-A state is a nested dict of plain values and numpy arrays (what ``StageAdapter.state_dict()``
+A state is a nested dict of plain values and numpy arrays (what ``Node.state_dict()``
 returns). It is written as msgpack with the same array ext type as the wire codec, to a temporary
 file that is then renamed over the target, so a crash mid-write never leaves a torn checkpoint.
 """

@@ -10,7 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from .runtime.parts import run_part
+from .runtime.share import run_share
 from .runtime.topology import RunError, RunResult
 
 __all__ = ["RunError", "RunResult", "run"]
@@ -29,5 +29,5 @@ def run(cfg: Any, run_dir: str | Path | None = None, resume: str | Path | None =
         factory = source_factory(cfg.source.kind)
     except ValueError as exc:
         raise RunError(str(exc)) from None
-    # run_part: all of the plan, or this host's share of a run split over hosts (run.stages)
-    return run_part(cfg, plan, run_dir, resume, map_path, factory)
+    # run_share: all of the plan, or this host's share of a run split over hosts (run.stages)
+    return run_share(cfg, plan, run_dir, resume, map_path, factory)

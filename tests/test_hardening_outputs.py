@@ -204,7 +204,7 @@ def test_realtime_workers_batch_the_frames_waiting_in_their_ring(tmp_path):
     assert _stats(w)["processed"] == 3
     cfg = load_config("default", {"run": {"mode": "realtime", "max_batch": 5, "live": False}})
     sup = Supervisor(cfg, build_plan(cfg), tmp_path / "run")
-    assert {sup.worker_spec(w).max_batch for w in sup.groups} == {5}
+    assert {sup.layout.worker_spec(w).max_batch for w in sup.layout.groups} == {5}
 
 
 def test_a_real_time_worker_warms_its_batching_stages_up_before_the_first_frame(tmp_path):
@@ -263,8 +263,8 @@ def test_batch_waits_reach_the_workers_of_the_stages_they_name(tmp_path):
     cfg = load_config("default", {"run": {"batch_wait_ms": {"B": 12.5}, "live": False},
                                   "projector": {"device": "cpu"}})
     sup = Supervisor(cfg, build_plan(cfg), tmp_path / "run")
-    assert {w: sup.worker_spec(w).batch_wait_ms for w in sup.groups} == {
-        w: ({"B": 12.5} if w == "B" else {}) for w in sup.groups}
+    assert {w: sup.layout.worker_spec(w).batch_wait_ms for w in sup.layout.groups} == {
+        w: ({"B": 12.5} if w == "B" else {}) for w in sup.layout.groups}
     with pytest.raises(ConfigError, match="batch_wait_ms"):
         load_config("default", {"run": {"batch_wait_ms": {"B": -1}}})
 
@@ -404,10 +404,10 @@ def test_the_supervisor_does_not_restart_a_worker_that_refused_its_state(tmp_pat
         def is_alive(self):
             return False
 
-    sup.procs["D"] = Exited()
+    sup.children.procs["D"] = Exited()
     restarted = []
-    monkeypatch.setattr(sup, "_alive_tokens", lambda: set())
-    monkeypatch.setattr(sup, "_restart", lambda *a: restarted.append(a))
+    monkeypatch.setattr(sup.children, "alive_tokens", lambda: set())
+    monkeypatch.setattr(sup.children, "restart", lambda *a: restarted.append(a))
     with pytest.raises(RunError, match="refused the saved state"):
-        sup._wait_ready(["D"], timeout=5)
+        sup.children.wait_ready(["D"], timeout=5)
     assert restarted == []

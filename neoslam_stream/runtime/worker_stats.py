@@ -36,7 +36,7 @@ class ServiceStats:
     MAX_SAMPLES = 200_000
     #: the recent percentiles cover the newest this many frames (the scaling curve's step)
     RECENT = 1000
-    #: between two recomputations the live whole-run percentiles leave out at most this share
+    #: between two recomputations the live whole-run percentiles leave out at most this fraction
     #: of the samples (the newest)
     REFRESH_GROWTH = 0.125
 

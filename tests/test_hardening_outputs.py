@@ -390,6 +390,90 @@ def test_a_stage_that_refuses_its_saved_state_ends_the_worker_with_one_line(tmp_
         w.setup()
 
 
+# ------------------------------------------------------------------------------ the format version of state files
+def _unversioned(path: Path, state: dict) -> Path:
+    """A state file as written before state files had a format version: the state map itself."""
+    import msgpack
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(msgpack.packb(state))
+    return path
+
+
+def test_a_state_file_carries_its_format_version_and_round_trips(tmp_path):
+    import msgpack
+
+    from neoslam_stream.runtime import checkpoint as ck
+
+    path = tmp_path / "C.state"
+    ck.save_state_file(path, {"theta": 7, "cells": np.arange(5, dtype=np.int32), "nested": {"ids": [1, 2]}})
+    # the version is a field of what is written, ahead of the state
+    written = msgpack.unpackb(path.read_bytes(), raw=False, ext_hook=lambda code, data: None)
+    assert list(written)[:2] == ["format", "version"] and written["version"] == ck.STATE_VERSION
+    assert ck.state_file_version(path) == ck.STATE_VERSION
+    back = ck.load_state_file(path)
+    assert back["theta"] == 7 and back["nested"] == {"ids": [1, 2]}
+    assert back["cells"].dtype == np.int32 and back["cells"].tolist() == [0, 1, 2, 3, 4]
+    assert back["cells"].flags.writeable  # nodes mutate what they load
+
+
+def test_a_state_file_of_another_version_is_refused_with_one_line(tmp_path):
+    import msgpack
+
+    from neoslam_stream.runtime import checkpoint as ck
+
+    version = ck.STATE_VERSION
+    old = _unversioned(tmp_path / "old.state", {"theta": 7})
+    other = tmp_path / "other.state"
+    other.write_bytes(msgpack.packb({"format": "neoslam-state", "version": version + 1, "state": {"theta": 7}}))
+    for path, found, has in ((old, None, "no format version"), (other, version + 1, f"format version {version + 1}")):
+        assert ck.state_file_version(path) == found
+        with pytest.raises(ck.StateFormatError) as err:
+            ck.load_state_file(path)
+        assert str(err.value) == (f"{path} has {has}; this build reads version {version} "
+                                  f"(it was written by another version of neoslam)")
+
+
+def test_a_worker_refuses_a_state_file_of_another_version(tmp_path):
+    from neoslam_stream.runtime.worker import StateRefused
+
+    old = _unversioned(tmp_path / "picky.state", {"theta": 5})  # a state the node would take
+    w = Worker(WorkerSpec(name="picky", stages=[NodeSpec("picky", f"{__name__}:make_picky")], run="test-run",
+                          run_dir=str(tmp_path), lossless=True, resume_states={"picky": str(old)}))
+    w.build()
+    with pytest.raises(StateRefused, match=r"^stage picky: .*picky.state has no format version; this build "
+                                           r"reads version 1"):
+        w.setup()
+
+
+def test_resuming_from_a_checkpoint_of_another_version_is_refused_with_one_line(tmp_path, capsys):
+    from neoslam_stream.cli import main
+    from neoslam_stream.nodes.pipelines import build_plan
+    from neoslam_stream.runtime.checkpoint import cut_dir, save_state_file
+    from neoslam_stream.runtime.topology import Supervisor
+
+    cfg = load_config("default", {"run": {"live": False}})
+    names = [s.name for s in build_plan(cfg).stages]
+    # a checkpoint of the current version: the supervisor resumes from it
+    current = tmp_path / "current"
+    for name in names:
+        save_state_file(cut_dir(current / "checkpoint", 20) / f"{name}.state", {"theta": 5})
+    sup = Supervisor(cfg, build_plan(cfg), tmp_path / "resumed", resume=current)
+    assert sup.layout.worker_spec("C").resume_states == {"C": str(cut_dir(current / "checkpoint", 20) / "C.state")}
+    # the same cut written before state files had a version: refused before any process starts
+    old = tmp_path / "old"
+    for name in names:
+        _unversioned(cut_dir(old / "checkpoint", 20) / f"{name}.state", {"theta": 5})
+    assert main(["run", "--resume", str(old), "--out", str(tmp_path / "again"), "--no-live"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    first = cut_dir(old / "checkpoint", 20) / f"{names[0]}.state"
+    assert err == [f"error: cannot resume: {first} has no format version; this build reads version 1 "
+                   f"(it was written by another version of neoslam)"]
+    # exporting its state as a map says so too
+    assert main(["map", "export", str(old), "--out", str(tmp_path / "site.neoslam")]) == 1
+    assert "has no format version; this build reads version 1" in capsys.readouterr().err
+
+
 def test_the_supervisor_does_not_restart_a_worker_that_refused_its_state(tmp_path, monkeypatch):
     from neoslam_stream.nodes.pipelines import build_plan
     from neoslam_stream.runtime.topology import RunError, Supervisor

@@ -79,6 +79,43 @@ def test_only_the_supervisors_router_links_to_other_hosts(tmp_path, monkeypatch)
         assert spec.expected_peers == layout.order.index(w)
 
 
+def test_the_primarys_saved_figures_carry_a_format_version(tmp_path, monkeypatch):
+    # what a resumed primary reads back (parts_state.json): the figures round-trip; a file of
+    # another version, or without one, is refused with one line naming it and both versions
+    from types import SimpleNamespace
+
+    from neoslam_stream.runtime.checkpoint import StateFormatError
+    from neoslam_stream.runtime.share_recovery import STATE_FILE, STATE_VERSION
+
+    monkeypatch.setenv(CONTROL_TOKEN_ENV, "s3cret")
+    cfg = load_config("default", {"run": {"stages": ["C", "D"], "run_id": "x4"}})
+    sup = ShareSupervisor(cfg, build_plan(cfg), tmp_path / "a")
+    sup.collector.add({"stage": "C", "pid": 1, "received": 4, "processed": 4})
+    sup.final.frames.add(3)
+    sup.children.restart_events.append({"worker": "C", "exit_code": -9})
+    sup.recovery.link = SimpleNamespace(all_outages=lambda: [{"host": "A,B", "start_wall": 1.0}])
+    sup.recovery.persist()
+    path = tmp_path / "a" / STATE_FILE
+    saved = json.loads(path.read_text())
+    assert saved["format"] == "neoslam-share-state" and saved["version"] == STATE_VERSION
+    again = ShareSupervisor(cfg, build_plan(cfg), tmp_path / "b")
+    again.recovery.restore(path)
+    assert again.collector.raw["C"]["processed"] == 4 and again.final.frames == {3}
+    assert again.children.restart_events == [{"worker": "C", "exit_code": -9}]
+    assert again.recovery.outages() == [{"host": "A,B", "start_wall": 1.0}]
+    for found, has in ((None, "no format version"), (STATE_VERSION + 1, f"format version {STATE_VERSION + 1}")):
+        other = dict(saved)
+        if found is None:
+            del other["format"], other["version"]
+        else:
+            other["version"] = found
+        path.write_text(json.dumps(other))
+        with pytest.raises(StateFormatError) as err:
+            again.recovery.restore(path)
+        assert str(err.value) == (f"{path} has {has}; this build reads version {STATE_VERSION} "
+                                  f"(it was written by another version of neoslam)")
+
+
 def _start(tmp_path: Path, name: str, *args: str) -> subprocess.Popen:
     cfg = tmp_path / "cfg.yaml"
     cfg.write_text(yaml.safe_dump(TINY))

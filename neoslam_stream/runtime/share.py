@@ -24,12 +24,12 @@ from pathlib import Path
 from typing import Any
 
 from .bus import key_for, open_session
-from .checkpoint import latest_complete_cut
+from .checkpoint import StateFormatError, latest_complete_cut
 from .config import RunConfig
 from .node import NodeSpec
 from .report import write_report
 from .share_recovery import STATE_FILE, ShareRecovery
-from .topology import CONTROL_TOKEN_ENV, PipelinePlan, RunError, RunResult, Supervisor, run_plan
+from .topology import CONTROL_TOKEN_ENV, PipelinePlan, RunError, RunResult, Supervisor, check_cut, run_plan
 
 log = logging.getLogger("neoslam.share")
 
@@ -168,8 +168,13 @@ class ShareSupervisor(Supervisor):
         if layout.resume_cut is None:
             log.warning("run %s: no complete checkpoint of %s in %s: these stages start afresh",
                         self.run_id, names, self.resume_dir)
+        else:
+            check_cut(self.resume_dir / "checkpoint", layout.resume_cut, names)
         if layout.is_primary:
-            self.recovery.restore(self.resume_dir / STATE_FILE)
+            try:
+                self.recovery.restore(self.resume_dir / STATE_FILE)
+            except StateFormatError as exc:
+                raise RunError(f"cannot resume: {exc}") from None
 
     def _resume_frame(self) -> int:
         """Before the first frame: the run's monitor is ready too, wherever it runs."""

@@ -12,7 +12,8 @@ again, a pipeline stalled after an outage with messages missing. **Real-time** r
 back: lost frames are counted by cause (loss.py), outages named.
 
 The primary also keeps what a resumed primary needs (the figures of the run so far) in
-``parts_state.json``.
+``parts_state.json``, which begins with its format and version: one of another version, or
+without one, is refused.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from .checkpoint import latest_complete_cut
+from .checkpoint import StateFormatError, latest_complete_cut
 from .children import Children
 from .collector import FinalTracker, StatsCollector, union_ranges
 from .files import write_atomic
@@ -41,6 +42,9 @@ STALL_S = 2.0
 #: the primary saves what a resumed primary needs (frames done, figures of earlier lives) this often
 PERSIST_S = 1.0
 STATE_FILE = "parts_state.json"
+#: what STATE_FILE holds, and the one version of it this build reads
+STATE_FORMAT = "neoslam-share-state"
+STATE_VERSION = 1
 
 
 class ShareRecovery:
@@ -256,6 +260,7 @@ class ShareRecovery:
             final = to_ranges(self.final.frames)
         state.update({"final": final, "outages": self.link.all_outages(), "rollbacks": self.rollbacks,
                       "restart_events": self.children.restart_events})
+        state = {"format": STATE_FORMAT, "version": STATE_VERSION, **state}
         try:
             write_atomic(self.layout.run_dir / STATE_FILE, json.dumps(state).encode())
         except OSError as exc:
@@ -263,26 +268,30 @@ class ShareRecovery:
 
     def restore(self, path: Path) -> None:
         """A resumed primary takes the figures its earlier life saved in ``path`` (none when it
-        saved none)."""
+        saved none); a file of another format version, or of none, is refused with
+        :class:`~neoslam_stream.runtime.checkpoint.StateFormatError`."""
         try:
             state = json.loads(path.read_text())
         except (OSError, ValueError):
             return
+        found = state.get("version") if isinstance(state, dict) and state.get("format") == STATE_FORMAT else None
+        if found != STATE_VERSION:
+            raise StateFormatError(path, found, STATE_VERSION)
         c = self.collector
         with c.lock:
-            c.raw, c.earlier = state.get("raw", {}), state.get("earlier", {})
-            c.lives, c.spans = state.get("lives", {}), state.get("spans", {})
+            c.raw, c.earlier = state["raw"], state["earlier"]
+            c.lives, c.spans = state["lives"], state["spans"]
         with self.final.lock:
-            for a, b in state.get("final", []):
+            for a, b in state["final"]:
                 self.final.frames.update(range(a, b + 1))
-        self.rollbacks = list(state.get("rollbacks", []))
-        self.children.restart_events = list(state.get("restart_events", []))
-        self._earlier_outages = list(state.get("outages", []))
+        self.rollbacks = list(state["rollbacks"])
+        self.children.restart_events = list(state["restart_events"])
+        self._earlier_outages = list(state["outages"])
 
     # ------------------------------------------------------------------ report
     def outages(self) -> list[dict[str, Any]]:
         seen, out = set(), []
-        for o in [*self._earlier_outages, *self.link.all_outages()]:
+        for o in [*self._earlier_outages, *(self.link.all_outages() if self.link else [])]:
             key = (o.get("seen_by"), o.get("host"), o.get("start_wall"))
             if key not in seen:
                 seen.add(key)
@@ -300,9 +309,11 @@ class ShareRecovery:
         spans = {k: list(v) for k, v in self.collector.spans.items()}
         loss = loss_by_cause(src, final, stats, spans, outages, int(report.get("frames_strided") or 0),
                              useful_stages(stats, layout.plan.final_topic))
+        # no link yet when the share failed before it knew its processes (e.g. --resume refused)
+        link = self.link
         hosts = {lb: {"stages": p.get("stages"), "source": p.get("source"), "primary": p.get("primary"),
                       "silent_s": round(s, 3)}
-                 for lb, s in self.link.silent().items() if (p := self.link.peer(lb))}
+                 for lb, s in (link.silent().items() if link else ()) if (p := link.peer(lb))}
         hosts[self.label] = {"stages": list(layout.hosted), "source": layout.runs_source, "primary": True}
         for o in outages:
             log.warning("run %s: link to %s out at %.1f s for %.1f s (seen by %s)", layout.run_id, o["host"],

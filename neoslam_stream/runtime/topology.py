@@ -32,7 +32,7 @@ from typing import Any
 import yaml
 
 from .bus import ZENOH_CONFIG_ENV, ZENOH_TX_QUEUE_ENV, key_for, open_session
-from .checkpoint import latest_complete_cut, load_map_file
+from .checkpoint import StateFormatError, check_state_file, cut_dir, latest_complete_cut, load_map_file
 from .children import Children
 from .collector import FinalTracker, StatsCollector
 from .config import RunConfig
@@ -52,6 +52,16 @@ __all__ = ["CONTROL_TOKEN_ENV", "PipelinePlan", "RunError", "RunResult", "Superv
 CONTROL_TOKEN_ENV = "NEOSLAM_CONTROL_TOKEN"
 
 log = logging.getLogger("neoslam.topology")
+
+
+def check_cut(checkpoint_dir: Path, cut: int, stages: list[str]) -> None:
+    """Refuse to resume from a cut whose state files another version of neoslam wrote (one line
+    naming the first such file), before any process starts."""
+    for name in stages:
+        try:
+            check_state_file(cut_dir(checkpoint_dir, cut) / f"{name}.state")
+        except StateFormatError as exc:
+            raise RunError(f"cannot resume: {exc}") from None
 
 
 class Supervisor:
@@ -87,6 +97,7 @@ class Supervisor:
             if resume_cut is None:
                 raise RunError(f"no complete checkpoint in {resume / 'checkpoint'} "
                                f"(every stage of {names} must have saved the same cut)")
+            check_cut(resume / "checkpoint", resume_cut, names)
         stored_map = ""
         if map_path is not None:
             if resume is not None:

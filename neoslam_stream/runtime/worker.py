@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from .bus import Bus, ControlGate, InputQueue, key_for, open_session, wait_for_peers
-from .checkpoint import load_map_file, load_state_file
+from .checkpoint import StateFormatError, load_map_file, load_state_file
 from .messages import Message, MessageError, Topic, decode, encode, register_topics
 from .node import NodeSpec, is_input_error
 from .worker_cuts import CheckpointCuts
@@ -147,7 +147,11 @@ class Worker:
                 st.node.warm_up(self.spec.max_batch)
             path = self.spec.resume_states.get(st.name)
             if path:
-                self._load_state(st, load_state_file(path), path)
+                try:
+                    state = load_state_file(path)
+                except StateFormatError as exc:  # written by another version: one line, no restart
+                    raise StateRefused(f"stage {st.name}: {exc}") from None
+                self._load_state(st, state, path)
                 self.cuts.resumed(st, path)
             elif st.name in imported:
                 self._load_state(st, imported[st.name], str(self.spec.map_path))

@@ -21,6 +21,8 @@ class ConfigError(ValueError):
 
 
 class Strict(BaseModel):
+    """A config section: unknown keys are errors, assignments are validated."""
+
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
 
@@ -98,6 +100,8 @@ class EmulatedConfig(Strict):
 
 
 class RunSection(Strict):
+    """How a run is hosted and kept: its pipeline, topology, mode, processes and checkpoints."""
+
     pipeline: str = "emulated"
     topology: Literal["pipeline", "monolithic"] = "pipeline"
     #: lossless: nothing dropped, source back-pressured; realtime: drop-oldest rings
@@ -161,6 +165,9 @@ class RunSection(Strict):
 
 
 class RunConfig(Strict):
+    """The runtime's sections of a run's config (the type the runtime is given; the package's
+    full config, with the algorithms' sections, subclasses it)."""
+
     run: RunSection = Field(default_factory=RunSection)
     bus: BusConfig = Field(default_factory=BusConfig)
     source: SourceConfig = Field(default_factory=lambda: SourceConfig(kind="emulated", params={"frames": None}))

@@ -21,7 +21,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -32,7 +32,7 @@ from ..tum import write_tum
 from .bus import Bus, ControlGate, key_for, open_session, wait_for_peers, wait_for_subscribers
 from .messages import Message, MessageError, Topic, decode, encode, register_topics
 from .node import load_factory
-from .source import Source
+from .source import Source, SourceFrame
 
 log = logging.getLogger("neoslam.source")
 
@@ -53,6 +53,8 @@ class SourceSpec:
 
 @dataclass
 class SourceRunSpec:
+    """Everything the source process needs; plain data so it crosses a ``spawn``."""
+
     source: SourceSpec
     run: str
     run_dir: str
@@ -130,7 +132,7 @@ class _Progress:
         return True
 
 
-def frame_messages(sf: Any, published_at: float) -> list[tuple[str, Message]]:
+def frame_messages(sf: SourceFrame, published_at: float) -> list[tuple[str, Message]]:
     out: list[tuple[str, Message]] = []
     if sf.image is not None or sf.compressed is not None:
         data: dict[str, Any] = {}
@@ -152,7 +154,7 @@ def frame_messages(sf: Any, published_at: float) -> list[tuple[str, Message]]:
     return out
 
 
-def _guarded(source: Any, record_error: Any) -> Iterator[Any]:
+def _guarded(source: Source, record_error: Callable[[str], None]) -> Iterator[SourceFrame]:
     """Iterate ``source``; an exception while reading (a truncated bag, a corrupt container) is
     recorded as the source's error and ends the stream, so the frames read so far are processed
     and the run ends normally."""
@@ -271,7 +273,7 @@ class SourceRunner:
             log.warning("source: %s", cause)
         self.errors[cause] = self.errors.get(cause, 0) + 1
 
-    def record_rows(self, sf: Any, gt_ok: bool, odom_ok: bool) -> None:
+    def record_rows(self, sf: SourceFrame, gt_ok: bool, odom_ok: bool) -> None:
         """The frame's ground truth and integrated odometry rows (those it published)."""
         if sf.groundtruth is not None and gt_ok:
             self.gt_rows.append((sf.stamp, *sf.groundtruth))
@@ -334,7 +336,7 @@ class SourceRunner:
         self.bar_task = self.bar.add_task("frames", total=total)
 
     # ------------------------------------------------------------------ frames
-    def pace(self, sf: Any) -> bool:
+    def pace(self, sf: SourceFrame) -> bool:
         """Wait until frame ``sf`` is due (fixed rate, recorded timing, or the lossless credit
         window); False when the run was stopped meanwhile."""
         spec = self.spec
@@ -360,7 +362,7 @@ class SourceRunner:
                     return False
         return True
 
-    def publish_frame(self, sf: Any) -> None:
+    def publish_frame(self, sf: SourceFrame) -> None:
         """Publish the frame's image, odometry and ground truth, and note what was sent."""
         spec = self.spec
         assert self.bus is not None

@@ -27,8 +27,8 @@ class ServiceStats:
 
     Samples live in two preallocated arrays; when they are full the older half is dropped, so
     the percentiles cover the newest ``MAX_SAMPLES // 2`` to ``MAX_SAMPLES`` frames. Stats go out
-    twice a second from the worker's own thread, between two frames: the percentiles over that
-    many samples cost ~25 ms at 100 000, so the whole-run ones are recomputed only when the
+    twice a second from the worker's own thread, between two frames, and percentiles over that
+    many samples would delay a frame each time, so the whole-run ones are recomputed only when the
     samples have grown by ``REFRESH_GROWTH`` since the last time (their cost, amortised, stays a
     few operations per frame), the recent ones every time, and all of them exactly in the final
     stats (``summary(exact=True)``)."""

@@ -171,7 +171,7 @@ def nordland(step_main: int, step_side: int) -> dict:
             "backbone": main_run["backbone"], "nordland_runs": runs,
             "nordland_sparse_vs_gaussian": agreement, "nordland_tm_tie_break": tie,
             "nordland_method": (
-                f"summer then winter through the adapters of A, B, C (pass-through: cell 0 of each active "
+                f"summer then winter through the nodes of A, B, C (pass-through: cell 0 of each active "
                 f"column) and D; every {step_main}th thumbnail for the main run, every {step_side}th for the "
                 "variants; places with a featureless frame (grey std < 10: tunnels) left out of both seasons; "
                 "B centres features with a running mean (window 100); theta_sigma calibrated on the summer "

@@ -125,3 +125,45 @@ def test_stage_a_node_does_load_torch_when_it_builds_its_extractor():
     code = ("from neoslam_stream.nodes.frontend import make_node\n"
             "n = make_node('features', features={'backbone': 'random_alexnet'}); n.setup()")
     assert "torch" in _loaded_after(code)
+
+
+def _runtime_import_graph() -> dict[str, set[str]]:
+    """Runtime module -> the runtime modules it imports, at module level or inside a function."""
+    paths = _modules("runtime")
+    names = {".".join(p.relative_to(PKG.parent).with_suffix("").parts): p for p in paths}
+    return {name: _imports(path) & set(names) - {name} for name, path in names.items()}
+
+
+def _import_cycle(graph: dict[str, set[str]]) -> list[str]:
+    """One cycle of ``graph`` as [a, b, ..., a], or [] when it has none (depth-first search)."""
+    done: set[str] = set()
+
+    def visit(node: str, path: list[str]) -> list[str]:
+        if node in path:
+            return path[path.index(node):] + [node]
+        if node in done:
+            return []
+        for nxt in sorted(graph.get(node, ())):
+            cycle = visit(nxt, path + [node])
+            if cycle:
+                return cycle
+        done.add(node)
+        return []
+
+    for start in sorted(graph):
+        cycle = visit(start, [])
+        if cycle:
+            return cycle
+    return []
+
+
+def test_the_cycle_search_finds_a_cycle():
+    # the check below must be able to fail: a loop through a lazy import is one
+    assert _import_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": set()}) == ["a", "b", "c", "a"]
+    assert _import_cycle({"a": {"b"}, "b": set()}) == []
+    graph = _runtime_import_graph()
+    assert "neoslam_stream.runtime.worker" in graph["neoslam_stream.runtime.procs"]  # a lazy import is seen
+
+
+def test_the_runtime_has_no_import_cycle():
+    assert _import_cycle(_runtime_import_graph()) == []

@@ -49,8 +49,8 @@ def test_a_stage_that_refuses_its_state_makes_a_failed_report(tmp_path, monkeypa
     """The supervisor's real start-up, with processes that only pretend: the monitor comes up, every
     worker exits with EXIT_STATE_REFUSED (a checkpoint made with other parameters)."""
     from neoslam_stream.nodes.pipelines import build_plan
-    from neoslam_stream.runtime.procs import EXIT_STATE_REFUSED
     from neoslam_stream.runtime.topology import RunError, Supervisor
+    from neoslam_stream.runtime.worker import EXIT_STATE_REFUSED
 
     cfg = load_config("default")
     sup = Supervisor(cfg, build_plan(cfg), tmp_path / "run", source_factory="neoslam_stream.sources:SOURCES")
@@ -69,10 +69,10 @@ def test_a_stage_that_refuses_its_state_makes_a_failed_report(tmp_path, monkeypa
         terminate = kill = join
 
     def start(name, target, spec):
-        sup.procs[name] = Pretend(None if name == "monitor" else EXIT_STATE_REFUSED)
+        sup.children.procs[name] = Pretend(None if name == "monitor" else EXIT_STATE_REFUSED)
 
-    monkeypatch.setattr(sup, "_start", start)
-    monkeypatch.setattr(sup, "_alive_tokens", lambda: {"monitor"})
+    monkeypatch.setattr(sup.children, "start", start)
+    monkeypatch.setattr(sup.children, "alive_tokens", lambda: {"monitor"})
     with pytest.raises(RunError, match="refused the saved state") as err:
         sup.run()
     assert str(tmp_path / "run" / "report.json") in str(err.value)

@@ -136,7 +136,7 @@ def test_a_bug_in_a_node_is_counted_apart_from_bad_input_and_the_worker_goes_on(
         for f, what in enumerate(kinds):
             w.handle("probe", _probe(f, what), time.time())
     st = _stats(w)
-    node = w.stages[0].adapter
+    node = w.stages[0].node
     assert node.seen == [f for f, what in enumerate(kinds) if what == "ok"]  # it went on
     # bad input: the algorithm's InvalidInput and the node's StageInputError, each once
     assert st["errors"] == 2 and sum(st["error_causes"].values()) == 2
@@ -185,7 +185,7 @@ def test_a_bad_frame_in_a_micro_batch_is_counted_once(tmp_path):
     assert st["errors"] == 2
     assert sum(st["error_causes"].values()) == st["errors"]  # each bad frame once, not batch + frame
     assert st["received"] == len(kinds) and st["processed"] == 4
-    assert w.stages[0].adapter.seen == [0, 2, 4, 5]
+    assert w.stages[0].node.seen == [0, 2, 4, 5]
 
 
 def test_realtime_workers_batch_the_frames_waiting_in_their_ring(tmp_path):
@@ -200,11 +200,11 @@ def test_realtime_workers_batch_the_frames_waiting_in_their_ring(tmp_path):
     for f in range(5):  # the ring keeps the newest three
         w.queue.put("probe", _probe(f), time.time())
     w.handle(*w.queue.get(0.1))
-    assert w.stages[0].adapter.batches == [[2, 3, 4]]
+    assert w.stages[0].node.batches == [[2, 3, 4]]
     assert _stats(w)["processed"] == 3
     cfg = load_config("default", {"run": {"mode": "realtime", "max_batch": 5, "live": False}})
     sup = Supervisor(cfg, build_plan(cfg), tmp_path / "run")
-    assert {sup.worker_spec(w).max_batch for w in sup.groups} == {5}
+    assert {sup.layout.worker_spec(w).max_batch for w in sup.layout.groups} == {5}
 
 
 def test_a_real_time_worker_warms_its_batching_stages_up_before_the_first_frame(tmp_path):
@@ -213,7 +213,7 @@ def test_a_real_time_worker_warms_its_batching_stages_up_before_the_first_frame(
     for lossless, batchable, expected in ((False, True, 6), (False, False, None), (True, True, None)):
         w = _worker(tmp_path, NodeSpec("probe", f"{__name__}:make_probe", {"batchable": batchable}),
                     max_batch=6, lossless=lossless)
-        assert getattr(w.stages[0].adapter, "warmed", None) == expected
+        assert getattr(w.stages[0].node, "warmed", None) == expected
 
 
 def test_a_stage_with_a_batch_wait_pairs_a_lone_frame_only_while_frames_come_often(tmp_path):
@@ -234,25 +234,25 @@ def test_a_stage_with_a_batch_wait_pairs_a_lone_frame_only_while_frames_come_oft
     w, waited = worker({"probe": 2000.0})
     w.handle("probe", _probe(0), t0 - 0.02)  # no arrival seen yet: no wait
     w.handle("probe", _probe(1), t0 - 0.01)  # one arrival seen: no interval known yet
-    assert not waited and w.stages[0].adapter.seen == [0, 1]  # one at a time (no batch call)
+    assert not waited and w.stages[0].node.seen == [0, 1]  # one at a time (no batch call)
     # frames 0 and 1 came 10 ms apart (< 2 s): frame 2, alone, waits for frame 3 and takes it along
     later = threading.Timer(0.05, lambda: w.queue.put("probe", _probe(3), time.time()))
     later.start()
     w.handle("probe", _probe(2), time.time())
     later.join()
-    assert waited == [1] and w.stages[0].adapter.batches == [[2, 3]]
+    assert waited == [1] and w.stages[0].node.batches == [[2, 3]]
 
     # frames that came 3 s apart (> 2 s): a lone frame does not wait
     w, waited = worker({"probe": 2000.0})
     for f in range(3):
         w.handle("probe", _probe(f), t0 - 6 + 3 * f)
-    assert not waited and w.stages[0].adapter.seen == [0, 1, 2] and not w.stages[0].adapter.batches
+    assert not waited and w.stages[0].node.seen == [0, 1, 2] and not w.stages[0].node.batches
 
     # a stage not named waits for nothing
     w, waited = worker({"other": 2000.0})
     for f in range(3):
         w.handle("probe", _probe(f), t0 + 0.001 * f)
-    assert not waited and w.stages[0].adapter.seen == [0, 1, 2] and not w.stages[0].adapter.batches
+    assert not waited and w.stages[0].node.seen == [0, 1, 2] and not w.stages[0].node.batches
 
 
 def test_batch_waits_reach_the_workers_of_the_stages_they_name(tmp_path):
@@ -263,8 +263,8 @@ def test_batch_waits_reach_the_workers_of_the_stages_they_name(tmp_path):
     cfg = load_config("default", {"run": {"batch_wait_ms": {"B": 12.5}, "live": False},
                                   "projector": {"device": "cpu"}})
     sup = Supervisor(cfg, build_plan(cfg), tmp_path / "run")
-    assert {w: sup.worker_spec(w).batch_wait_ms for w in sup.groups} == {
-        w: ({"B": 12.5} if w == "B" else {}) for w in sup.groups}
+    assert {w: sup.layout.worker_spec(w).batch_wait_ms for w in sup.layout.groups} == {
+        w: ({"B": 12.5} if w == "B" else {}) for w in sup.layout.groups}
     with pytest.raises(ConfigError, match="batch_wait_ms"):
         load_config("default", {"run": {"batch_wait_ms": {"B": -1}}})
 
@@ -390,10 +390,94 @@ def test_a_stage_that_refuses_its_saved_state_ends_the_worker_with_one_line(tmp_
         w.setup()
 
 
+# ------------------------------------------------------------------------------ the format version of state files
+def _unversioned(path: Path, state: dict) -> Path:
+    """A state file as written before state files had a format version: the state map itself."""
+    import msgpack
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(msgpack.packb(state))
+    return path
+
+
+def test_a_state_file_carries_its_format_version_and_round_trips(tmp_path):
+    import msgpack
+
+    from neoslam_stream.runtime import checkpoint as ck
+
+    path = tmp_path / "C.state"
+    ck.save_state_file(path, {"theta": 7, "cells": np.arange(5, dtype=np.int32), "nested": {"ids": [1, 2]}})
+    # the version is a field of what is written, ahead of the state
+    written = msgpack.unpackb(path.read_bytes(), raw=False, ext_hook=lambda code, data: None)
+    assert list(written)[:2] == ["format", "version"] and written["version"] == ck.STATE_VERSION
+    assert ck.state_file_version(path) == ck.STATE_VERSION
+    back = ck.load_state_file(path)
+    assert back["theta"] == 7 and back["nested"] == {"ids": [1, 2]}
+    assert back["cells"].dtype == np.int32 and back["cells"].tolist() == [0, 1, 2, 3, 4]
+    assert back["cells"].flags.writeable  # nodes mutate what they load
+
+
+def test_a_state_file_of_another_version_is_refused_with_one_line(tmp_path):
+    import msgpack
+
+    from neoslam_stream.runtime import checkpoint as ck
+
+    version = ck.STATE_VERSION
+    old = _unversioned(tmp_path / "old.state", {"theta": 7})
+    other = tmp_path / "other.state"
+    other.write_bytes(msgpack.packb({"format": "neoslam-state", "version": version + 1, "state": {"theta": 7}}))
+    for path, found, has in ((old, None, "no format version"), (other, version + 1, f"format version {version + 1}")):
+        assert ck.state_file_version(path) == found
+        with pytest.raises(ck.StateFormatError) as err:
+            ck.load_state_file(path)
+        assert str(err.value) == (f"{path} has {has}; this build reads version {version} "
+                                  f"(it was written by another version of neoslam)")
+
+
+def test_a_worker_refuses_a_state_file_of_another_version(tmp_path):
+    from neoslam_stream.runtime.worker import StateRefused
+
+    old = _unversioned(tmp_path / "picky.state", {"theta": 5})  # a state the node would take
+    w = Worker(WorkerSpec(name="picky", stages=[NodeSpec("picky", f"{__name__}:make_picky")], run="test-run",
+                          run_dir=str(tmp_path), lossless=True, resume_states={"picky": str(old)}))
+    w.build()
+    with pytest.raises(StateRefused, match=r"^stage picky: .*picky.state has no format version; this build "
+                                           r"reads version 1"):
+        w.setup()
+
+
+def test_resuming_from_a_checkpoint_of_another_version_is_refused_with_one_line(tmp_path, capsys):
+    from neoslam_stream.cli import main
+    from neoslam_stream.nodes.pipelines import build_plan
+    from neoslam_stream.runtime.checkpoint import cut_dir, save_state_file
+    from neoslam_stream.runtime.topology import Supervisor
+
+    cfg = load_config("default", {"run": {"live": False}})
+    names = [s.name for s in build_plan(cfg).stages]
+    # a checkpoint of the current version: the supervisor resumes from it
+    current = tmp_path / "current"
+    for name in names:
+        save_state_file(cut_dir(current / "checkpoint", 20) / f"{name}.state", {"theta": 5})
+    sup = Supervisor(cfg, build_plan(cfg), tmp_path / "resumed", resume=current)
+    assert sup.layout.worker_spec("C").resume_states == {"C": str(cut_dir(current / "checkpoint", 20) / "C.state")}
+    # the same cut written before state files had a version: refused before any process starts
+    old = tmp_path / "old"
+    for name in names:
+        _unversioned(cut_dir(old / "checkpoint", 20) / f"{name}.state", {"theta": 5})
+    assert main(["run", "--resume", str(old), "--out", str(tmp_path / "again"), "--no-live"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    first = cut_dir(old / "checkpoint", 20) / f"{names[0]}.state"
+    assert err == [f"error: cannot resume: {first} has no format version; this build reads version 1 "
+                   f"(it was written by another version of neoslam)"]
+    # exporting its state as a map says so too
+    assert main(["map", "export", str(old), "--out", str(tmp_path / "site.neoslam")]) == 1
+    assert "has no format version; this build reads version 1" in capsys.readouterr().err
+
+
 def test_the_supervisor_does_not_restart_a_worker_that_refused_its_state(tmp_path, monkeypatch):
     from neoslam_stream.nodes.pipelines import build_plan
-    from neoslam_stream.runtime.procs import EXIT_STATE_REFUSED
     from neoslam_stream.runtime.topology import RunError, Supervisor
+    from neoslam_stream.runtime.worker import EXIT_STATE_REFUSED
 
     cfg = load_config("default")
     sup = Supervisor(cfg, build_plan(cfg), tmp_path / "run")
@@ -404,10 +488,10 @@ def test_the_supervisor_does_not_restart_a_worker_that_refused_its_state(tmp_pat
         def is_alive(self):
             return False
 
-    sup.procs["D"] = Exited()
+    sup.children.procs["D"] = Exited()
     restarted = []
-    monkeypatch.setattr(sup, "_alive_tokens", lambda: set())
-    monkeypatch.setattr(sup, "_restart", lambda *a: restarted.append(a))
+    monkeypatch.setattr(sup.children, "alive_tokens", lambda: set())
+    monkeypatch.setattr(sup.children, "restart", lambda *a: restarted.append(a))
     with pytest.raises(RunError, match="refused the saved state"):
-        sup._wait_ready(["D"], timeout=5)
+        sup.children.wait_ready(["D"], timeout=5)
     assert restarted == []

@@ -1,4 +1,4 @@
-"""Stage C with NeoSLAM's parameters: the two tie rules and the stage adapter."""
+"""Stage C with NeoSLAM's parameters: the two tie rules and the stage's node."""
 
 import numpy as np
 import pytest

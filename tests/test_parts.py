@@ -18,8 +18,8 @@ from runhelpers import light_config
 
 from neoslam_stream.config import load_config
 from neoslam_stream.nodes.pipelines import build_plan
-from neoslam_stream.runtime.parts import PartSupervisor, check_selection, parse_stages
 from neoslam_stream.runtime.ports import free_port
+from neoslam_stream.runtime.share import ShareSupervisor, check_selection, parse_stages
 from neoslam_stream.runtime.topology import CONTROL_TOKEN_ENV, RunError, group_workers
 
 FRAMES = 30
@@ -42,24 +42,24 @@ def test_stage_lists_are_parsed_and_checked():
         check_selection(groups, ["recorder"])
 
 
-def test_a_part_needs_a_run_id_and_the_pipeline_topology(tmp_path):
+def test_a_share_needs_a_run_id_and_the_pipeline_topology(tmp_path):
     cfg = load_config("default", {"run": {"stages": ["A"]}})
     with pytest.raises(RunError, match="--run-id"):
-        PartSupervisor(cfg, build_plan(cfg), tmp_path / "a")
+        ShareSupervisor(cfg, build_plan(cfg), tmp_path / "a")
     cfg = load_config("default", {"run": {"stages": ["A"], "run_id": "x1", "topology": "monolithic"}})
     with pytest.raises(RunError, match="pipeline topology"):
-        PartSupervisor(cfg, build_plan(cfg), tmp_path / "b")
+        ShareSupervisor(cfg, build_plan(cfg), tmp_path / "b")
 
 
-def test_a_part_needs_the_runs_control_secret(tmp_path, monkeypatch):
+def test_a_share_needs_the_runs_control_secret(tmp_path, monkeypatch):
     # the source's host stops the other hosts' workers with control messages, which workers obey
     # only with the run's secret: without a shared one the split run could never end cleanly
     monkeypatch.delenv(CONTROL_TOKEN_ENV, raising=False)
     cfg = load_config("default", {"run": {"stages": ["A"], "run_id": "x3"}})
     with pytest.raises(RunError, match=CONTROL_TOKEN_ENV):
-        PartSupervisor(cfg, build_plan(cfg), tmp_path / "a")
+        ShareSupervisor(cfg, build_plan(cfg), tmp_path / "a")
     monkeypatch.setenv(CONTROL_TOKEN_ENV, "s3cret")
-    assert PartSupervisor(cfg, build_plan(cfg), tmp_path / "b").control_token == "s3cret"
+    assert ShareSupervisor(cfg, build_plan(cfg), tmp_path / "b").control_token == "s3cret"
 
 
 def test_only_the_supervisors_router_links_to_other_hosts(tmp_path, monkeypatch):
@@ -69,13 +69,51 @@ def test_only_the_supervisors_router_links_to_other_hosts(tmp_path, monkeypatch)
     # merely share a router), and no process links to another host's processes
     cfg = load_config("default", {"run": {"stages": ["A", "B"], "run_id": "x2"},
                                   "bus": {"connect": ["tcp/127.0.0.1:7"]}})
-    sup = PartSupervisor(cfg, build_plan(cfg), tmp_path / "a")
-    sup.order = ["supervisor", *sup.hosted]  # as _select_hosted sets it for a part without the source
-    for w in sup.hosted:
-        spec = sup.worker_spec(w)
+    sup = ShareSupervisor(cfg, build_plan(cfg), tmp_path / "a")
+    layout = sup.layout
+    layout.order = ["supervisor", *layout.hosted]  # as _select_hosted sets it for a share without the source
+    for w in layout.hosted:
+        spec = layout.worker_spec(w)
         assert "tcp/127.0.0.1:7" not in spec.connect
-        assert set(spec.connect) <= {sup.endpoints[n] for n in sup.order}
-        assert spec.expected_peers == sup.order.index(w)
+        assert set(spec.connect) <= {layout.endpoints[n] for n in layout.order}
+        assert spec.expected_peers == layout.order.index(w)
+
+
+def test_the_primarys_saved_figures_carry_a_format_version(tmp_path, monkeypatch):
+    # what a resumed primary reads back (parts_state.json): the figures round-trip; a file of
+    # another version, or without one, is refused with one line naming it and both versions
+    from types import SimpleNamespace
+
+    from neoslam_stream.runtime.checkpoint import StateFormatError
+    from neoslam_stream.runtime.share_recovery import STATE_FILE, STATE_VERSION
+
+    monkeypatch.setenv(CONTROL_TOKEN_ENV, "s3cret")
+    cfg = load_config("default", {"run": {"stages": ["C", "D"], "run_id": "x4"}})
+    sup = ShareSupervisor(cfg, build_plan(cfg), tmp_path / "a")
+    sup.collector.add({"stage": "C", "pid": 1, "received": 4, "processed": 4})
+    sup.final.frames.add(3)
+    sup.children.restart_events.append({"worker": "C", "exit_code": -9})
+    sup.recovery.link = SimpleNamespace(all_outages=lambda: [{"host": "A,B", "start_wall": 1.0}])
+    sup.recovery.persist()
+    path = tmp_path / "a" / STATE_FILE
+    saved = json.loads(path.read_text())
+    assert saved["format"] == "neoslam-share-state" and saved["version"] == STATE_VERSION
+    again = ShareSupervisor(cfg, build_plan(cfg), tmp_path / "b")
+    again.recovery.restore(path)
+    assert again.collector.raw["C"]["processed"] == 4 and again.final.frames == {3}
+    assert again.children.restart_events == [{"worker": "C", "exit_code": -9}]
+    assert again.recovery.outages() == [{"host": "A,B", "start_wall": 1.0}]
+    for found, has in ((None, "no format version"), (STATE_VERSION + 1, f"format version {STATE_VERSION + 1}")):
+        other = dict(saved)
+        if found is None:
+            del other["format"], other["version"]
+        else:
+            other["version"] = found
+        path.write_text(json.dumps(other))
+        with pytest.raises(StateFormatError) as err:
+            again.recovery.restore(path)
+        assert str(err.value) == (f"{path} has {has}; this build reads version {STATE_VERSION} "
+                                  f"(it was written by another version of neoslam)")
 
 
 def _start(tmp_path: Path, name: str, *args: str) -> subprocess.Popen:
@@ -110,8 +148,8 @@ def test_two_hosts_through_a_router_make_one_lossless_run(tmp_path):
     assert back.returncode == 0, out_back[-3000:]
     assert front.returncode == 0, out_front[-3000:]
     # the front host ran A and B only; the back end host ran the rest, the source and the monitor
-    part = json.loads((tmp_path / "front" / "part.json").read_text())
-    assert part["part"] == ["A", "B"] and part["restarts"] == {}
+    share = json.loads((tmp_path / "front" / "part.json").read_text())
+    assert share["part"] == ["A", "B"] and share["restarts"] == {}
     assert not (tmp_path / "front" / "report.json").exists()
     report = json.loads((tmp_path / "back" / "report.json").read_text())
     assert report["hosted_here"] == ["C", "D", "pose_cells", "experience_map"]

@@ -272,13 +272,18 @@ def test_exported_map_is_recognised_in_a_new_session(tmp_path):
 
 
 def test_map_file_errors_are_clear(tmp_path):
+    import msgpack
+
     from neoslam_stream.cli import main
     from neoslam_stream.runtime.checkpoint import load_map_file, save_state_file
 
-    save_state_file(tmp_path / "not_a_map", {"format": "something else", "stages": {}})
+    (tmp_path / "not_a_map").write_bytes(msgpack.packb({"format": "something else", "stages": {}}))
     with pytest.raises(ValueError, match="not a neoslam map"):
         load_map_file(tmp_path / "not_a_map")
-    save_state_file(tmp_path / "future", {"format": "neoslam-map", "version": 99, "stages": {}})
+    save_state_file(tmp_path / "a_state", {"stages": {}})  # a node's state file is no map either
+    with pytest.raises(ValueError, match="not a neoslam map"):
+        load_map_file(tmp_path / "a_state")
+    (tmp_path / "future").write_bytes(msgpack.packb({"format": "neoslam-map", "version": 99, "stages": {}}))
     with pytest.raises(ValueError, match="version 99"):
         load_map_file(tmp_path / "future")
     assert main(["map", "export", str(tmp_path / "empty_run")]) == 1  # no state: a clear error, no traceback

@@ -78,34 +78,34 @@ def test_the_plan_gives_every_process_its_topics_capacities_and_source(tmp_path)
     plan = build_plan(cfg)
     assert plan.final_topic == "experience_map/pose" and "pose_cells/action" in plan.topics
     sup = Supervisor(cfg, plan, tmp_path / "a", source_factory="pkg.cam:Camera")
-    for spec in [sup.worker_spec(w) for w in sup.groups] + [sup.monitor_spec(), sup.source_spec()]:
+    for spec in [sup.layout.worker_spec(w) for w in sup.layout.groups] + [sup.layout.monitor_spec(), sup.layout.source_spec()]:
         assert [str(t) for t in spec.topics] == [str(t) for t in plan.topics]
-    assert sup.source_spec().source.factory == "pkg.cam:Camera"
-    assert sup.source_spec().final_topic == "experience_map/pose"
+    assert sup.layout.source_spec().source.factory == "pkg.cam:Camera"
+    assert sup.layout.source_spec().final_topic == "experience_map/pose"
     # the back end's actions queue deep unless bus.capacity names them
-    assert sup.worker_spec("experience_map").capacities["pose_cells/action"] == 256
+    assert sup.layout.worker_spec("experience_map").capacities["pose_cells/action"] == 256
     # before and after a batching stage (A, B) a ring holds a whole batch of run.max_batch frames,
     # and after C, which turns B's batch into a burst of as many SDRs
     # the image ring before A: a batch in a real-time run, the default queue in a lossless one
-    assert sup.worker_spec("A").capacities.get("image", cfg.bus.default_capacity) == cfg.bus.default_capacity
+    assert sup.layout.worker_spec("A").capacities.get("image", cfg.bus.default_capacity) == cfg.bus.default_capacity
     live = load_config("default", {"run": {"live": False, "mode": "realtime"}})
-    assert Supervisor(live, build_plan(live), tmp_path / "r").worker_spec("A").capacities["image"] == \
+    assert Supervisor(live, build_plan(live), tmp_path / "r").layout.worker_spec("A").capacities["image"] == \
         live.run.max_batch
-    assert sup.worker_spec("B").capacities["visual_features"] == cfg.run.max_batch
-    assert sup.worker_spec("C").capacities["bin_features"] == cfg.run.max_batch
-    assert sup.worker_spec("D").capacities["sdr"] == cfg.run.max_batch
+    assert sup.layout.worker_spec("B").capacities["visual_features"] == cfg.run.max_batch
+    assert sup.layout.worker_spec("C").capacities["bin_features"] == cfg.run.max_batch
+    assert sup.layout.worker_spec("D").capacities["sdr"] == cfg.run.max_batch
     one = load_config("default", {"run": {"live": False, "max_batch": 1}, "bus": {"capacity": {"bin_features": 3}}})
     sup1 = Supervisor(one, build_plan(one), tmp_path / "one")
-    assert sup1.worker_spec("B").capacities["visual_features"] == one.bus.default_capacity  # no batch: 2
-    assert sup1.worker_spec("D").capacities["sdr"] == one.bus.default_capacity
-    assert sup1.worker_spec("C").capacities["bin_features"] == 3  # bus.capacity names it: it wins
+    assert sup1.layout.worker_spec("B").capacities["visual_features"] == one.bus.default_capacity  # no batch: 2
+    assert sup1.layout.worker_spec("D").capacities["sdr"] == one.bus.default_capacity
+    assert sup1.layout.worker_spec("C").capacities["bin_features"] == 3  # bus.capacity names it: it wins
     # the monolithic process keeps the newest frames (the original design), not a batch, unless
     # bus.capacity names the image ring
     mono = load_config("default", {"run": {"live": False, "topology": "monolithic", "mode": "realtime"}})
-    assert Supervisor(mono, build_plan(mono), tmp_path / "m").worker_spec("monolithic").capacities.get(
+    assert Supervisor(mono, build_plan(mono), tmp_path / "m").layout.worker_spec("monolithic").capacities.get(
         "image", mono.bus.default_capacity) == mono.bus.default_capacity
     named = load_config("default", {"run": {"live": False, "mode": "realtime"}, "bus": {"capacity": {"image": 3}}})
-    assert Supervisor(named, build_plan(named), tmp_path / "n").worker_spec("A").capacities["image"] == 3
+    assert Supervisor(named, build_plan(named), tmp_path / "n").layout.worker_spec("A").capacities["image"] == 3
     # the throughput bench reports the ring each run had
     from neoslam_stream.throughput import image_capacity
 
@@ -113,9 +113,9 @@ def test_the_plan_gives_every_process_its_topics_capacities_and_source(tmp_path)
     assert image_capacity(mono, "monolithic") == mono.bus.default_capacity
     cfg = load_config("default", {"run": {"live": False}, "bus": {"capacity": {"pose_cells/action": 7}}})
     sup = Supervisor(cfg, build_plan(cfg), tmp_path / "b")
-    assert sup.worker_spec("experience_map").capacities["pose_cells/action"] == 7
+    assert sup.layout.worker_spec("experience_map").capacities["pose_cells/action"] == 7
     with pytest.raises(RunError, match="no factory given for the source kind 'synthetic'"):
-        sup.source_spec()
+        sup.layout.source_spec()
 
 
 # ---------------------------------------------------------------------------------------------

@@ -50,20 +50,20 @@ def test_the_supervisor_hands_each_process_its_settings(tmp_path):
     run = {"nice": {"C": 10, "D": 4, "monitor": 15}, "cpus": {"A": [0], "C": [1], "D": [0]}}
     cfg = load_config("default", {"run": run})
     sup = Supervisor(cfg, build_plan(cfg), tmp_path / "pipeline")
-    assert sup.scheduling("A") == {"nice": 0, "cpus": [0]}
-    assert sup.scheduling("C") == {"nice": 10, "cpus": [1]}
-    assert sup.scheduling("B") == {"nice": 0, "cpus": []}
-    assert sup.scheduling("monitor") == {"nice": 15, "cpus": []}
-    assert sup.scheduling("source") == {"nice": 0, "cpus": []}
+    assert sup.layout.scheduling("A") == {"nice": 0, "cpus": [0]}
+    assert sup.layout.scheduling("C") == {"nice": 10, "cpus": [1]}
+    assert sup.layout.scheduling("B") == {"nice": 0, "cpus": []}
+    assert sup.layout.scheduling("monitor") == {"nice": 15, "cpus": []}
+    assert sup.layout.scheduling("source") == {"nice": 0, "cpus": []}
     # one process for every stage: the lowest niceness of its stages (0 for those not named), the
     # union of their CPUs (any CPU when one of them is not restricted)
     cfg = load_config("default", {"run": {**run, "topology": "monolithic"}})
     sup = Supervisor(cfg, build_plan(cfg), tmp_path / "monolithic")
-    assert sup.scheduling("monolithic") == {"nice": 0, "cpus": []}
+    assert sup.layout.scheduling("monolithic") == {"nice": 0, "cpus": []}
     cfg = load_config("default", {"run": {"topology": "monolithic", "cpus": {"monolithic": [1]}}})
-    assert Supervisor(cfg, build_plan(cfg), tmp_path / "m1").scheduling("monolithic") == {"nice": 0, "cpus": [1]}
+    assert Supervisor(cfg, build_plan(cfg), tmp_path / "m1").layout.scheduling("monolithic") == {"nice": 0, "cpus": [1]}
     cfg = load_config("default", {"run": {**run, "topology": "monolithic", "nice": {"monolithic": 3}}})
-    assert Supervisor(cfg, build_plan(cfg), tmp_path / "m2").scheduling("monolithic")["nice"] == 3
+    assert Supervisor(cfg, build_plan(cfg), tmp_path / "m2").layout.scheduling("monolithic")["nice"] == 3
 
 
 def test_bus_tx_queue_reaches_every_process_config(tmp_path, monkeypatch):

@@ -23,9 +23,10 @@ def test_a_run_listens_on_loopback_only_by_default(tmp_path):
 
     cfg = load_config("default", {"run": {"live": False}})
     sup = Supervisor(cfg, build_plan(cfg), tmp_path / "run")
-    assert sup.endpoints and all(re.fullmatch(r"tcp/127\.0\.0\.1:\d+", e) for e in sup.endpoints.values())
-    for name in sup.order[1:-1]:
-        listen, connect = sup._links(name)
+    layout = sup.layout
+    assert layout.endpoints and all(re.fullmatch(r"tcp/127\.0\.0\.1:\d+", e) for e in layout.endpoints.values())
+    for name in layout.order[1:-1]:
+        listen, connect = layout.links(name)
         assert all(e.startswith("tcp/127.0.0.1:") for e in listen + connect)
 
 

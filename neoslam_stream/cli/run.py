@@ -32,7 +32,7 @@ def _source_params(pairs: list[str]) -> dict[str, Any]:
 
 
 def _stages(text: str) -> list[str]:
-    from ..runtime.parts import parse_stages
+    from ..runtime.share import parse_stages
 
     return parse_stages(text)
 
@@ -241,7 +241,7 @@ def cmd_router(args: argparse.Namespace) -> int:
     import os
 
     from ..runtime.bus import ZENOH_CONFIG_ENV
-    from ..runtime.parts import serve_router
+    from ..runtime.share import serve_router
 
     if args.zenoh_config:
         if not Path(args.zenoh_config).is_file():

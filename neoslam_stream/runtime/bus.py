@@ -97,6 +97,8 @@ def wait_for_subscribers(publishers: Sequence[zenoh.Publisher], timeout: float) 
 
 @dataclass
 class QueueStats:
+    """Per topic of an input queue: items received, and those evicted from a full ring."""
+
     received: int = 0
     evicted: int = 0
 

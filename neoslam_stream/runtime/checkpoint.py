@@ -1,8 +1,13 @@
-"""Saving and loading adapter state files, atomically and without pickle.
+"""Saving and loading node state files and exported maps, atomically and without pickle.
 
-A state is a nested dict of plain values and numpy arrays (what ``StageAdapter.state_dict()``
-returns). It is written as msgpack with the same array ext type as the wire codec, to a temporary
-file that is then renamed over the target, so a crash mid-write never leaves a torn checkpoint.
+A state is a nested dict of plain values and numpy arrays (what ``Node.state_dict()`` returns). It
+is written as msgpack with the same array ext type as the wire codec, to a temporary file that is
+then renamed over the target, so a crash mid-write never leaves a torn checkpoint. Every file
+written here begins with its ``format`` and ``version``: a state file is
+``{"format": "neoslam-state", "version": STATE_VERSION, "state": {...}}``, a map file
+``{"format": "neoslam-map", "version": MAP_VERSION, ..., "stages": {stage: state}}``. A file of
+another version, or without one (written before files had one), is refused with one line
+(:class:`StateFormatError`); nothing reads the formats of earlier versions.
 """
 
 from __future__ import annotations
@@ -17,23 +22,80 @@ from .messages import _default, _ext_hook
 
 MAX_STATE_BYTES = 8 * 2**30
 
+#: a state file's format and the one version of it this build reads
+STATE_FORMAT = "neoslam-state"
+STATE_VERSION = 1
 
-def save_state_file(path: str | Path, state: dict[str, Any]) -> None:
-    """Write ``state`` to ``path`` atomically (see files.write_atomic): on a failure such as a full
-    disk the OSError is raised and the previous file, if any, is left as it was."""
+
+class StateFormatError(ValueError):
+    """A saved file of another format version than this build reads (or of none): the text is one
+    line naming the file, the version it has and the one this build reads."""
+
+    def __init__(self, path: str | Path, found: Any, supported: int) -> None:
+        has = "no format version" if found is None else f"format version {found!r}"
+        super().__init__(f"{path} has {has}; this build reads version {supported} "
+                         f"(it was written by another version of neoslam)")
+        self.path, self.found, self.supported = path, found, supported
+
+
+def _write_msgpack(path: str | Path, data: dict[str, Any]) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(path, msgpack.packb(state, default=_default, use_bin_type=True))
+    write_atomic(path, msgpack.packb(data, default=_default, use_bin_type=True))
 
 
-def load_state_file(path: str | Path) -> dict[str, Any]:
+def _read_msgpack(path: str | Path) -> dict[str, Any]:
+    """The map held by the file ``path`` (a state or map file), its arrays read-only."""
     path = Path(path)
     if path.stat().st_size > MAX_STATE_BYTES:
         raise ValueError(f"state file {path} is larger than {MAX_STATE_BYTES} bytes")
-    data = path.read_bytes()
-    state = msgpack.unpackb(data, ext_hook=_ext_hook, raw=False, strict_map_key=False)
-    if not isinstance(state, dict):
+    data = msgpack.unpackb(path.read_bytes(), ext_hook=_ext_hook, raw=False, strict_map_key=False)
+    if not isinstance(data, dict):
         raise ValueError(f"state file {path} does not hold a map")
+    return data
+
+
+def save_state_file(path: str | Path, state: dict[str, Any]) -> None:
+    """Write ``state`` to ``path`` atomically (see files.write_atomic), after its format and
+    version: on a failure such as a full disk the OSError is raised and the previous file, if any,
+    is left as it was."""
+    _write_msgpack(path, {"format": STATE_FORMAT, "version": STATE_VERSION, "state": state})
+
+
+def state_file_version(path: str | Path) -> Any:
+    """The format version of the state file ``path``, read from its first bytes only (a state
+    file may be large); None when it has none (not a state file of any version)."""
+    with open(path, "rb") as fh:
+        unpacker = msgpack.Unpacker(fh, raw=False, strict_map_key=False)
+        try:
+            header: dict[Any, Any] = {}
+            for _ in range(min(2, unpacker.read_map_header())):
+                key = unpacker.unpack()
+                if key not in ("format", "version"):
+                    break
+                header[key] = unpacker.unpack()
+        except (ValueError, msgpack.UnpackException):
+            return None
+    return header.get("version") if header.get("format") == STATE_FORMAT else None
+
+
+def check_state_file(path: str | Path) -> None:
+    """Refuse (:class:`StateFormatError`) a state file of another version than this build's."""
+    found = state_file_version(path)
+    if found != STATE_VERSION:
+        raise StateFormatError(path, found, STATE_VERSION)
+
+
+def load_state_file(path: str | Path) -> dict[str, Any]:
+    """The state saved in ``path`` (writable arrays); a file of another format version, or of
+    none, is refused with :class:`StateFormatError`."""
+    data = _read_msgpack(path)
+    found = data.get("version") if data.get("format") == STATE_FORMAT else None
+    if found != STATE_VERSION:
+        raise StateFormatError(path, found, STATE_VERSION)
+    state = data.get("state")
+    if not isinstance(state, dict):
+        raise ValueError(f"state file {path} holds no state")
     return _writable(state)
 
 
@@ -121,17 +183,17 @@ def export_map(run_dir: str | Path, out: str | Path) -> dict[str, Any]:
             meta["frames"] = rep.get("frames_out")
         except (OSError, ValueError):
             pass
-    save_state_file(out, {**meta, "stages": states})
+    _write_msgpack(out, {**meta, "stages": states})
     return {**meta, "stages": sorted(states)}
 
 
 def load_map_file(path: str | Path) -> dict[str, Any]:
     """A map file written by :func:`export_map`, checked for its format and version."""
-    data = load_state_file(path)
+    data = _read_msgpack(path)
     if data.get("format") != MAP_FORMAT:
         raise ValueError(f"{path} is not a neoslam map file (format {data.get('format')!r})")
     if data.get("version") != MAP_VERSION:
         raise ValueError(f"{path}: map version {data.get('version')!r}, this build reads {MAP_VERSION}")
     if not isinstance(data.get("stages"), dict):
         raise ValueError(f"{path}: no stage states in the map file")
-    return data
+    return _writable(data)

@@ -21,6 +21,8 @@ class ConfigError(ValueError):
 
 
 class Strict(BaseModel):
+    """A config section: unknown keys are errors, assignments are validated."""
+
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
 
@@ -98,6 +100,8 @@ class EmulatedConfig(Strict):
 
 
 class RunSection(Strict):
+    """How a run is hosted and kept: its pipeline, topology, mode, processes and checkpoints."""
+
     pipeline: str = "emulated"
     topology: Literal["pipeline", "monolithic"] = "pipeline"
     #: lossless: nothing dropped, source back-pressured; realtime: drop-oldest rings
@@ -127,9 +131,9 @@ class RunSection(Strict):
     #: save every stage's state every N source frames (0 = never); see docs/reliability.md
     checkpoint_every: int = Field(0, ge=0)
     #: the stage workers this host runs when a run is split over several hosts (None: all;
-    #: ["rest"]: those no other host of the run announced); see runtime/parts.py
+    #: ["rest"]: those no other host of the run announced); see runtime/share.py
     stages: list[str] | None = None
-    #: the run id (key expressions neoslam/<run_id>/...): the parts of a split run must share it
+    #: the run id (key expressions neoslam/<run_id>/...): every host of a split run must use the same one
     run_id: str | None = Field(None, pattern=r"^[A-Za-z0-9_-]{1,64}$")
     #: a split run: another host silent this long (seconds) is gone, and this host ends its share
     host_timeout: float = Field(30.0, gt=0)
@@ -161,6 +165,9 @@ class RunSection(Strict):
 
 
 class RunConfig(Strict):
+    """The runtime's sections of a run's config (the type the runtime is given; the package's
+    full config, with the algorithms' sections, subclasses it)."""
+
     run: RunSection = Field(default_factory=RunSection)
     bus: BusConfig = Field(default_factory=BusConfig)
     source: SourceConfig = Field(default_factory=lambda: SourceConfig(kind="emulated", params={"frames": None}))
@@ -168,11 +175,11 @@ class RunConfig(Strict):
 
 
 def _format_error(exc: ValidationError, origin: str) -> str:
-    parts = []
+    faults = []
     for err in exc.errors():
         loc = ".".join(str(p) for p in err["loc"]) or "<root>"
-        parts.append(f"{loc}: {err['msg']}")
-    return f"invalid configuration {origin}: " + "; ".join(parts)
+        faults.append(f"{loc}: {err['msg']}")
+    return f"invalid configuration {origin}: " + "; ".join(faults)
 
 
 def load_yaml_config(text: str | None, origin: str, model: type[BaseModel],

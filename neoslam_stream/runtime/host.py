@@ -56,7 +56,7 @@ def sample_host(stat_path: str | Path = "/proc/stat") -> HostSample:
 
 def host_usage(start: HostSample, end: HostSample, ticks_per_s: float | None = None) -> dict[str, Any]:
     """``report.json``'s ``host``: the CPU seconds the hypervisor took from all cores between the
-    two samples (``steal_s``), that as a share of the cores' time (``steal_share``), the load
+    two samples (``steal_s``), that as a fraction of the cores' time (``steal_share``), the load
     average before the run (``load_1min_before``: processes already running or waiting) and the
     CPU count."""
     cpus = os.cpu_count() or 1
@@ -65,9 +65,9 @@ def host_usage(start: HostSample, end: HostSample, ticks_per_s: float | None = N
             ticks_per_s = float(os.sysconf("SC_CLK_TCK"))
         except (ValueError, OSError, AttributeError):
             ticks_per_s = 100.0
-    steal_s = share = None
+    steal_s = fraction = None
     if start.steal is not None and end.steal is not None:
         steal_s = round((end.steal - start.steal) / ticks_per_s, 2)
         wall = end.t - start.t
-        share = round(steal_s / (wall * cpus), 4) if wall > 0 else None
-    return {"cpus": cpus, "steal_s": steal_s, "steal_share": share, "load_1min_before": start.load_1min}
+        fraction = round(steal_s / (wall * cpus), 4) if wall > 0 else None
+    return {"cpus": cpus, "steal_s": steal_s, "steal_share": fraction, "load_1min_before": start.load_1min}

@@ -20,7 +20,7 @@ from typing import Any
 from .bus import ControlGate, key_for
 from .messages import Message, MessageError, decode, encode
 
-log = logging.getLogger("neoslam.parts")
+log = logging.getLogger("neoslam.share")
 
 #: seconds between two heartbeats, and the silence that counts as an outage of the link
 HEARTBEAT_S = 0.25

@@ -51,6 +51,8 @@ def stats_table(stats: dict[str, dict[str, Any]], title: str = "neoslam") -> Any
 
 @dataclass
 class MonitorSpec:
+    """Everything the monitor process needs; plain data so it crosses a ``spawn``."""
+
     run: str
     run_dir: str
     final_topic: str

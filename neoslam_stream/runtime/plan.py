@@ -13,6 +13,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
+from .config import RunConfig
 from .messages import Topic
 from .node import NodeSpec
 
@@ -39,6 +40,8 @@ class RunError(RuntimeError):
 
 @dataclass
 class RunResult:
+    """What a finished run gives back: its folder, its report and how it ended."""
+
     run_dir: Path
     report: dict[str, Any]
     interrupted: bool = False
@@ -65,7 +68,9 @@ def group_workers(plan: PipelinePlan, topology: str) -> dict[str, list[NodeSpec]
     return groups
 
 
-def make_run_dir(cfg: Any, out: str | Path | None) -> tuple[str, Path]:
+def make_run_dir(cfg: RunConfig, out: str | Path | None) -> tuple[str, Path]:
+    """The run's name (``run.name``, else pipeline, topology and start time) and its folder
+    (``out``, else ``run.out``/name), created."""
     name = cfg.run.name or f"{cfg.run.pipeline}-{cfg.run.topology}-{datetime.now():%Y%m%d-%H%M%S}"
     base = Path(out) if out is not None else Path(cfg.run.out) / name
     base.mkdir(parents=True, exist_ok=True)

@@ -56,14 +56,14 @@ class _Registry:
             fcntl.flock(self.fd, fcntl.LOCK_EX)
             now = time.time()
             for line in os.read(self.fd, 1 << 20).decode(errors="replace").splitlines():
-                parts = line.split()
-                if len(parts) == 2 and parts[0].isdigit():
+                fields = line.split()
+                if len(fields) == 2 and fields[0].isdigit():
                     try:
-                        t = float(parts[1])
+                        t = float(fields[1])
                     except ValueError:
                         continue
                     if now - PORT_RESERVE_S < t <= now + 1.0:
-                        self.recent[int(parts[0])] = t
+                        self.recent[int(fields[0])] = t
         except (ImportError, OSError):
             self._close()
         return self

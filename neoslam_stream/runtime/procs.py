@@ -25,10 +25,6 @@ THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NU
                "NUMBA_NUM_THREADS", "VECLIB_MAXIMUM_THREADS")
 
 
-#: a worker's exit code when a stage refused the saved state it was given (a checkpoint or a map
-#: made with other parameters): restarting cannot help, so the supervisor stops the run at once
-EXIT_STATE_REFUSED = 3
-
 def set_thread_budget(threads: int) -> None:
     """Limit every math library of this process to ``threads`` threads (call before importing them)."""
     n = str(max(1, int(threads)))

@@ -4,8 +4,9 @@ In the ``pipeline`` topology every worker hosts one stage's node (light observer
 recorder may join it); in the ``monolithic`` topology one worker hosts them all and routes the
 chain's internal topics directly, as the original blocking NeoSLAM does. Per hosted node it counts
 messages received, processed, published, refused (with their causes), strided and evicted, and
-measures tau_i, the queueing time and the process's memory, published on ``stats/<stage>``
-(worker_stats.py); its stages' checkpoint cuts are worker_cuts.py's.
+measures tau_i, the queueing time and the process's memory, published on ``stats/<stage>`` by the
+:class:`~neoslam_stream.runtime.worker_stats.WorkerStats` it owns; its stages' checkpoint cuts are
+saved by the :class:`~neoslam_stream.runtime.worker_cuts.CheckpointCuts` it owns.
 
 A worker never dies from one message: bad input (:func:`~neoslam_stream.runtime.node.is_input_error`,
 or a frame number far ahead of the stage's last one) is counted under ``errors``, logged once per
@@ -26,22 +27,25 @@ import time
 import traceback
 from collections import defaultdict, deque
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 from .bus import Bus, ControlGate, InputQueue, key_for, open_session, wait_for_peers
+from .checkpoint import StateFormatError, load_map_file, load_state_file
 from .messages import Message, MessageError, Topic, decode, encode, register_topics
 from .node import NodeSpec, is_input_error
-from .procs import EXIT_STATE_REFUSED
 from .worker_cuts import CheckpointCuts
 from .worker_stats import StageRuntime, WorkerStats
 
 log = logging.getLogger("neoslam.worker")
 
+#: a worker's exit code when a stage refused the saved state it was given (a checkpoint or a map
+#: made with other parameters): restarting cannot help, so the supervisor stops the run at once
+EXIT_STATE_REFUSED = 3
 
 
 class StateRefused(RuntimeError):
     """A stage refused the saved state it was given; the text says which stage, file and why."""
+
 
 @dataclass
 class WorkerSpec:
@@ -67,10 +71,10 @@ class WorkerSpec:
     #: topics that are published even when consumed inside the chain.
     publish_internal: list[str] = field(default_factory=list)
     log_level: str = "WARNING"
-    #: adapter state to load before processing (stage name -> path of a state file), see checkpoint.py
+    #: node state to load before processing (stage name -> path of a state file), see checkpoint.py
     resume_states: dict[str, str] = field(default_factory=dict)
-    #: an exported map (``neoslam map export``) to start from: each stage loads its part, then
-    #: starts a new session (see Node.new_session)
+    #: an exported map (``neoslam map export``) to start from: each stage loads its own state from
+    #: it, then starts a new session (see Node.new_session)
     map_path: str = ""
     #: number of other processes this one should be linked to before it announces readiness
     expected_peers: int = 0
@@ -91,8 +95,10 @@ class WorkerSpec:
     epoch: int = 0
 
 
-class Worker(WorkerStats, CheckpointCuts):
-    """The body of a worker process (also usable in-process by tests)."""
+class Worker:
+    """The body of a worker process (also usable in-process by tests): builds its nodes, takes
+    its inputs from the bus and routes each through its chain of stages. It owns its stats
+    (:class:`WorkerStats`) and its checkpoint cuts (:class:`CheckpointCuts`)."""
 
     def __init__(self, spec: WorkerSpec) -> None:
         self.spec = spec
@@ -108,19 +114,19 @@ class Worker(WorkerStats, CheckpointCuts):
         self.produced_inside: set[str] = set()
         self.bus: Bus | None = None
         self.queue: InputQueue | None = None
-        self._started = time.time()
-        self._proc = None
+        self.stats = WorkerStats(spec.name, spec.run, spec.epoch)
+        self.cuts = CheckpointCuts(spec.checkpoint_every, spec.checkpoint_dir, spec.run_dir)
         self.control = ControlGate(spec.control_token, f"worker {spec.name}")
 
     # ------------------------------------------------------------------ set-up
     def build(self) -> None:
         for s in self.spec.stages:
-            adapter = s.build()
+            node = s.build()
             out_dir = os.path.join(self.spec.run_dir, s.output_subdir) if s.output_subdir else self.spec.run_dir
             os.makedirs(out_dir, exist_ok=True)
-            adapter.run_dir = out_dir
-            adapter.run_id = self.spec.run
-            self.stages.append(StageRuntime(adapter, s.remap))
+            node.run_dir = out_dir
+            node.run_id = self.spec.run
+            self.stages.append(StageRuntime(node, s.remap))
         for i, st in enumerate(self.stages):
             for t in st.inputs:
                 self.consumers[t].append(i)
@@ -129,34 +135,34 @@ class Worker(WorkerStats, CheckpointCuts):
                 later = [j for j in self.consumers.get(t, []) if j > i]
                 if later:
                     self.produced_here.add(t)
-                if any(not self.stages[j].adapter.observer for j in later):
+                if any(not self.stages[j].node.observer for j in later):
                     self.produced_inside.add(t)
 
     def setup(self) -> None:
-        """Heavy initialisation of every adapter, then an imported map or a state to resume from."""
-        from .checkpoint import load_map_file, load_state_file
-
+        """Heavy initialisation of every node, then an imported map or a state to resume from."""
         imported = load_map_file(self.spec.map_path)["stages"] if self.spec.map_path else {}
         for st in self.stages:
-            st.adapter.setup()
-            if not self.spec.lossless and st.adapter.batchable:
-                st.adapter.warm_up(self.spec.max_batch)
+            st.node.setup()
+            if not self.spec.lossless and st.node.batchable:
+                st.node.warm_up(self.spec.max_batch)
             path = self.spec.resume_states.get(st.name)
             if path:
-                self._load_state(st, load_state_file(path), path)
-                cut = Path(path).parent.name
-                if cut.isdigit() and self.spec.checkpoint_every > 0:  # the next cut follows this one
-                    st.checkpoint_index = int(cut) // self.spec.checkpoint_every
+                try:
+                    state = load_state_file(path)
+                except StateFormatError as exc:  # written by another version: one line, no restart
+                    raise StateRefused(f"stage {st.name}: {exc}") from None
+                self._load_state(st, state, path)
+                self.cuts.resumed(st, path)
             elif st.name in imported:
                 self._load_state(st, imported[st.name], str(self.spec.map_path))
-                st.adapter.new_session()
+                st.node.new_session()
 
     @staticmethod
     def _load_state(st: StageRuntime, state: Any, origin: str) -> None:
         """A saved state into a stage; a stage that refuses it (made with other parameters: a
         ``ValueError`` naming them) ends the worker with :data:`EXIT_STATE_REFUSED` and one line."""
         try:
-            st.adapter.load_state_dict(state)
+            st.node.load_state_dict(state)
         except ValueError as exc:
             raise StateRefused(f"stage {st.name} refuses the state in {origin}: {exc}") from None
 
@@ -183,7 +189,7 @@ class Worker(WorkerStats, CheckpointCuts):
                 if t not in self.produced_inside or t in self.spec.publish_internal:
                     self.bus.publisher(t)
             # a node that publishes outside the run's topics (ROS 2 output) gets the session itself
-            bind = getattr(st.adapter, "bind_session", None)
+            bind = getattr(st.node, "bind_session", None)
             if callable(bind):
                 bind(self.bus.session)
 
@@ -229,25 +235,25 @@ class Worker(WorkerStats, CheckpointCuts):
         if not msgs:
             return
         st.received += len(msgs)
-        if self.spec.checkpoint_every > 0 and len(st.inputs) > 1:
+        if self.cuts.enabled and len(st.inputs) > 1:
             n_in = len(msgs)
-            msgs, received = self._hold_for_cut(idx, topic, msgs, received)
+            msgs, received = self.cuts.hold(st, topic, msgs, received)
             if msgs:
                 self._process(idx, topic, msgs, received)
-            self._release_cut(idx, budget=n_in)
+            self.cuts.release(st, lambda t, m, r: self._process(idx, t, m, r), budget=n_in)
             return
-        self._maybe_checkpoint(st, min(m.frame for m in msgs))
+        self.cuts.maybe_save(st, min(m.frame for m in msgs))
         self._process(idx, topic, msgs, received)
 
     def _process(self, idx: int, topic: str, msgs: list[Message], received: list[float]) -> None:
         st = self.stages[idx]
         started = time.time()
-        local = st.to_adapter.get(topic, topic)
+        local = st.to_node.get(topic, topic)
         try:
             if len(msgs) == 1:
-                outputs = st.adapter.process(local, msgs[0])
+                outputs = st.node.process(local, msgs[0])
             else:
-                outputs = st.adapter.process_batch(local, msgs)
+                outputs = st.node.process_batch(local, msgs)
         except Exception as exc:
             cause = f"{type(exc).__name__}: {exc}"
             if not is_input_error(exc):
@@ -311,8 +317,8 @@ class Worker(WorkerStats, CheckpointCuts):
             return
         first = idxs[0]
         batch = [(payload, received)]
-        adapter = self.stages[first].adapter
-        if adapter.batchable and self.spec.max_batch > 1 and self.queue is not None:
+        node = self.stages[first].node
+        if node.batchable and self.spec.max_batch > 1 and self.queue is not None:
             batch += self.queue.get_more(topic, self.spec.max_batch - 1)
             wait_s = self.spec.batch_wait_ms.get(self.stages[first].name, 0.0) / 1000.0
             if wait_s > 0:
@@ -321,7 +327,7 @@ class Worker(WorkerStats, CheckpointCuts):
                 self._note_arrivals(topic, [r for _p, r in batch])
         msgs: list[Message] = []
         recv: list[float] = []
-        expected = self.stages[first].to_adapter.get(topic, topic)
+        expected = self.stages[first].to_node.get(topic, topic)
         for p, r in batch:
             try:
                 msg = decode(p)
@@ -359,6 +365,15 @@ class Worker(WorkerStats, CheckpointCuts):
             return []
         return self.queue.get_more(topic, self.spec.max_batch - 1)
 
+    # ------------------------------------------------------------------ stats
+    def stats_messages(self, final: bool = False) -> list[Message]:
+        """This worker's ``stats/<stage>`` messages now (``final``: at shutdown, exact percentiles)."""
+        return self.stats.messages(self.stages, self.consumers, self.queue, self.control, final)
+
+    def publish_stats(self, final: bool = False) -> None:
+        assert self.bus is not None
+        self.stats.publish(self.bus.session, self.stats_messages(final))
+
     # ------------------------------------------------------------------ main loop
     def loop(self) -> None:
         assert self.queue is not None
@@ -387,19 +402,19 @@ class Worker(WorkerStats, CheckpointCuts):
             for t, m, r in held:  # the stream ended before every input reached the next cut
                 self._process(i, t, [m], [r])
             try:
-                outs = st.adapter.flush()
+                outs = st.node.flush()
             except Exception as exc:
                 log.error("stage %s flush failed: %s", st.name, exc)
                 outs = []
             now = time.time()
             self._emit(i, outs, st.name, {}, now, now)
-        self._save_final_states()
+        self.cuts.save_final_states(self.stages)
         self.publish_stats(final=True)
         # samples still in flight are lost if the session closes at once
         time.sleep(0.3)
         for st in self.stages:
             try:
-                st.adapter.close()
+                st.node.close()
             except Exception as exc:
                 log.error("stage %s close failed: %s", st.name, exc)
 

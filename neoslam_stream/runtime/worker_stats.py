@@ -11,10 +11,11 @@ import logging
 import os
 import time
 from collections import defaultdict
+from typing import Any
 
 import numpy as np
 
-from .bus import key_for
+from .bus import ControlGate, InputQueue, key_for
 from .messages import Message, encode
 from .node import Node
 
@@ -26,8 +27,8 @@ class ServiceStats:
 
     Samples live in two preallocated arrays; when they are full the older half is dropped, so
     the percentiles cover the newest ``MAX_SAMPLES // 2`` to ``MAX_SAMPLES`` frames. Stats go out
-    twice a second from the worker's own thread, between two frames: the percentiles over that
-    many samples cost ~25 ms at 100 000, so the whole-run ones are recomputed only when the
+    twice a second from the worker's own thread, between two frames, and percentiles over that
+    many samples would delay a frame each time, so the whole-run ones are recomputed only when the
     samples have grown by ``REFRESH_GROWTH`` since the last time (their cost, amortised, stays a
     few operations per frame), the recent ones every time, and all of them exactly in the final
     stats (``summary(exact=True)``)."""
@@ -35,7 +36,7 @@ class ServiceStats:
     MAX_SAMPLES = 200_000
     #: the recent percentiles cover the newest this many frames (the scaling curve's step)
     RECENT = 1000
-    #: between two recomputations the live whole-run percentiles leave out at most this share
+    #: between two recomputations the live whole-run percentiles leave out at most this fraction
     #: of the samples (the newest)
     REFRESH_GROWTH = 0.125
 
@@ -94,16 +95,17 @@ class ServiceStats:
 class StageRuntime:
     """One hosted node with its counters and its topic names on the bus."""
 
-    def __init__(self, adapter: Node, remap: dict[str, str] | None = None) -> None:
-        self.adapter = adapter
-        self.name = adapter.name
+    def __init__(self, node: Node, remap: dict[str, str] | None = None) -> None:
+        self.node = node
+        self.name = node.name
         remap = remap or {}
-        self.inputs = [remap.get(t, t) for t in adapter.inputs]
+        self.inputs = [remap.get(t, t) for t in node.inputs]
         #: the inputs that arrive once per frame (checkpoint cuts wait for them)
-        self.ordered_inputs = [remap.get(t, t) for t in adapter.inputs if t not in adapter.unordered_inputs]
-        self.outputs = [remap.get(t, t) for t in adapter.outputs]
-        self.to_adapter = {remap.get(t, t): t for t in adapter.inputs}
-        self.to_bus = {t: remap.get(t, t) for t in adapter.outputs}
+        self.ordered_inputs = [remap.get(t, t) for t in node.inputs if t not in node.unordered_inputs]
+        self.outputs = [remap.get(t, t) for t in node.outputs]
+        #: bus topic -> the node's own name for it, and back (NodeSpec.remap)
+        self.to_node = {remap.get(t, t): t for t in node.inputs}
+        self.to_bus = {t: remap.get(t, t) for t in node.outputs}
         self.received = 0
         self.processed = 0
         self.published: dict[str, int] = defaultdict(int)
@@ -120,7 +122,7 @@ class StageRuntime:
         self.frame_seen = -1
         self.checkpoint_index = 0
         #: multi-input stages with checkpoints: messages at or beyond the next cut, held until
-        #: every input has reached the cut (see Worker._run_stage), and how far each input got
+        #: every input has reached the cut (worker_cuts.CheckpointCuts), and how far each input got
         self.deferred: list[tuple[str, Message, float]] = []
         self.reached: dict[str, int] = {}
 
@@ -154,10 +156,28 @@ def _count_cause(causes: dict[str, int], cause: str, n: int, limit: int, other: 
 
 
 class WorkerStats:
-    """The stats part of :class:`~neoslam_stream.runtime.worker.Worker` (mixed into it: it reads
-    the worker's spec, stages, queue, bus and control gate)."""
+    """The ``stats/<stage>`` messages of one worker process: per hosted stage its counters and
+    times (:class:`StageRuntime`), with the process's CPU and memory, which it reads itself (PSS
+    at most every ``PSS_PERIOD_S``: reading it costs a few ms). The worker owns one and hands it
+    its stages, input queue and control gate when it takes stats."""
 
-    def stats_messages(self, final: bool = False) -> list[Message]:
+    #: seconds between two PSS readings (reading /proc/<pid>/smaps_rollup costs a few ms)
+    PSS_PERIOD_S = 5.0
+
+    def __init__(self, worker: str, run: str, epoch: int = 0) -> None:
+        self.worker = worker
+        self.run = run
+        self.epoch = epoch
+        self.started = time.time()
+        self._proc: Any = None
+        self._pss_at = -1e9
+        self._pss: float | None = None
+
+    def messages(self, stages: list[StageRuntime], consumers: dict[str, list[int]], queue: InputQueue | None,
+                 control: ControlGate, final: bool = False) -> list[Message]:
+        """One stats message per stage; ``consumers``: topic -> the stages that take it (the
+        first of them reports the input's queue), ``queue``: the worker's inputs (None before it
+        is connected), ``control``: its gate (refused control messages, counted per process)."""
         import psutil
 
         if self._proc is None:
@@ -168,23 +188,23 @@ class WorkerStats:
         pss = self._pss_mb()
         ct = self._proc.cpu_times()
         cpu_s = ct.user + ct.system
-        counts = self.queue.counts() if self.queue else {}
+        counts = queue.counts() if queue else {}
         out = []
         now = time.time()
-        for i, st in enumerate(self.stages):
+        for i, st in enumerate(stages):
             inputs = {}
             for t in st.inputs:
-                if t in counts and self.consumers[t][0] == i:
+                if t in counts and consumers[t][0] == i:
                     received, evicted, depth = counts[t]
                     inputs[t] = {"received": received, "evicted": evicted, "depth": depth}
             try:
-                info = st.adapter.info()
+                info = st.node.info()
             except Exception as exc:  # info is diagnostic: never let it break stats
                 info = {"info_error": str(exc)}
-            data = {"stage": st.name, "worker": self.spec.name, "pid": os.getpid(), "time": now,
-                    "started": self._started, "received": st.received, "processed": st.processed,
+            data = {"stage": st.name, "worker": self.worker, "pid": os.getpid(), "time": now,
+                    "started": self.started, "received": st.received, "processed": st.processed,
                     "published": dict(st.published), "errors": st.errors,
-                    "error_causes": dict(st.error_causes), "counters": dict(st.adapter.counters),
+                    "error_causes": dict(st.error_causes), "counters": dict(st.node.counters),
                     "internal_errors": st.internal_errors,
                     "internal_error_causes": dict(st.internal_error_causes),
                     "inputs": inputs, "outputs": list(st.outputs),
@@ -192,37 +212,33 @@ class WorkerStats:
                     "info": info, "cpu_percent": cpu, "cpu_s": cpu_s, "rss_mb": rss, "pss_mb": pss,
                     "final": final,
                     # per process: the worker's first stage carries it (the report sums processes)
-                    "control_refused": self.control.refused if i == 0 else 0,
-                    "control_refused_causes": dict(self.control.causes) if i == 0 else {},
+                    "control_refused": control.refused if i == 0 else 0,
+                    "control_refused_causes": dict(control.causes) if i == 0 else {},
                     # strict inputs (a lossless run over hosts): holes a link made, older epochs
-                    "holes": dict(self.queue.holes) if self.queue and i == 0 else {},
-                    "stale_refused": self.queue.refused_stale if self.queue and i == 0 else 0,
-                    "epoch": self.spec.epoch,
-                    "n_stages_in_worker": len(self.stages), **st.times.summary(exact=final)}
+                    "holes": dict(queue.holes) if queue and i == 0 else {},
+                    "stale_refused": queue.refused_stale if queue and i == 0 else 0,
+                    "epoch": self.epoch,
+                    "n_stages_in_worker": len(stages), **st.times.summary(exact=final)}
             out.append(Message("stats", 0, now, data))
         return out
-
-    #: seconds between two PSS readings (reading /proc/<pid>/smaps_rollup costs a few ms)
-    PSS_PERIOD_S = 5.0
 
     def _pss_mb(self) -> float | None:
         """Proportional set size (MB): pages shared between processes (libraries, the parent's
         pages after a fork) count once in the sum over processes, unlike RSS. None where the
         platform does not report it."""
         now = time.monotonic()
-        if now - getattr(self, "_pss_at", -1e9) >= self.PSS_PERIOD_S:
+        if now - self._pss_at >= self.PSS_PERIOD_S:
             self._pss_at = now
             try:
-                self._pss_cache = self._proc.memory_full_info().pss / 2**20
+                self._pss = self._proc.memory_full_info().pss / 2**20
             except Exception:  # psutil.AccessDenied, no smaps on this platform...
-                self._pss_cache = None
-        return getattr(self, "_pss_cache", None)
+                self._pss = None
+        return self._pss
 
-    def publish_stats(self, final: bool = False) -> None:
-        assert self.bus is not None
-        for m in self.stats_messages(final):
+    def publish(self, session: Any, messages: list[Message]) -> None:
+        """Put each message on its stage's ``stats/<stage>``; a failure is logged, never raised."""
+        for m in messages:
             try:
-                self.bus.session.put(key_for(self.spec.run, f"stats/{m.data['stage']}"),
-                                     encode(m, validate=False))
+                session.put(key_for(self.run, f"stats/{m.data['stage']}"), encode(m, validate=False))
             except Exception as exc:  # stats must never stop the work
                 log.warning("stats not published: %s", exc)

@@ -186,7 +186,7 @@ def _started(run_dir: Path) -> float:
 
 
 #: what a run writes into its folder when it ends: report.json (the host with the source), or
-#: part.json (a host running only some stages of a run split over hosts: runtime/parts.py)
+#: part.json (a host running only some stages of a run split over hosts: runtime/share.py)
 END_FILES = ("report.json", "part.json")
 
 

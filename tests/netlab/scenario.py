@@ -156,7 +156,7 @@ def run_split(tmp: Path, cfg: dict[str, Any], faults: Faults, timeout: float = 4
             hosts.events.append((time.time(), "router started"))
             return p
 
-        def part(host: str, stages: str, run_dir: Path, *extra: str) -> Any:
+        def share(host: str, stages: str, run_dir: Path, *extra: str) -> Any:
             connect = f"tcp/127.0.0.1:{RELAY_PORT}" if host == "robot" else router_ep
             return hosts.popen(host, [*cli, "run", "-c", str(tmp / "cfg.yaml"), "--out", str(run_dir),
                                       "--stages", stages, "--run-id", "hosts", "--connect", connect, *extra],
@@ -165,8 +165,8 @@ def run_split(tmp: Path, cfg: dict[str, Any], faults: Faults, timeout: float = 4
         rtr = router()
         relay = hosts.relay("robot", f"127.0.0.1:{RELAY_PORT}", f"{hosts.ip['base']}:{ROUTER_PORT}",
                             faults.delay_ms, faults.jitter_ms, tmp / "relay.json", tmp / "relay.log")
-        robot = part("robot", robot_stages, robot_dir)
-        base = part("base", "rest", base_dir)
+        robot = share("robot", robot_stages, robot_dir)
+        base = share("base", "rest", base_dir)
         result = SplitResult(None, None, "", "", robot_dir, base_dir, hosts.events)
         todo = {k: getattr(faults, f"{k}_at") for k in ("outage", "stall", "router_restart", "base_restart",
                                                          "robot_kill", "base_kill")}
@@ -210,7 +210,7 @@ def run_split(tmp: Path, cfg: dict[str, Any], faults: Faults, timeout: float = 4
                         hosts.signal(base, signal.SIGKILL)
                         base.wait(30)
                         hosts.events.append((time.time(), "base killed"))
-                        base = part("base", "rest", base_dir, "--resume", str(base_dir))
+                        base = share("base", "rest", base_dir, "--resume", str(base_dir))
                         hosts.events.append((time.time(), "base restarted"))
                     elif what in ("robot_kill", "base_kill"):
                         victim = robot if what == "robot_kill" else base

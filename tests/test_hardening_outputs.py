@@ -156,7 +156,7 @@ def test_the_in_process_api_raises_bad_input_to_the_caller_and_goes_on():
     slam = NeoSLAM(_light_config(), backend=True)
     img = np.zeros((96, 160, 3), np.uint8)
     slam.step(img, odometry=(0.1, 0.0, 0.1))
-    with pytest.raises(StageInputError):
+    with pytest.raises(InvalidInput, match="5 channels"):
         slam.step(np.zeros((96, 160, 5), np.uint8), odometry=(0.1, 0.0, 0.1))
     with pytest.raises(ValueError, match="int64"):
         slam.step(img, odometry=(0.1, 0.0, 0.1), frame=MAX_FRAME + 1)

@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import time
 from pathlib import Path
@@ -257,6 +258,12 @@ def plot(res: dict[str, Any], path: Path) -> bool:
     return True
 
 
+def dump(res: dict[str, Any]) -> str:
+    """JSON, one key a line but each list of numbers on one line."""
+    text = json.dumps(res, indent=1)
+    return re.sub(r"\[\s+([^\[\]{}\"]*?)\s+\]", lambda m: "[" + " ".join(m.group(1).split()) + "]", text)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--parts", default=",".join(G.PARTS["validation"] + G.PARTS["test"]))
@@ -286,7 +293,7 @@ def main() -> None:
     res["b_below_a_as_b"] = [p for p, s in res["summary"].items() if s.get("b_keeps_a_as_b") is False]
     res["seconds"] = round(time.perf_counter() - t0, 1)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(res, indent=1))
+    out.write_text(dump(res))
     drawn = plot(res, png)
     print(f"wrote {out}{f' and {png}' if drawn else ''} in {res['seconds']} s; B below A on {res['b_below_a']}")
 

@@ -124,7 +124,7 @@ def downsample(curve: PRCurve, points: int = 50) -> dict[str, list[float]]:
     """At most ``points`` of the curve (the first and the last kept), as lists for a JSON file."""
     n = curve.recall.size
     idx = np.unique(np.linspace(0, n - 1, min(points, n)).round().astype(int)) if n else np.zeros(0, int)
-    return {"threshold": [float(v) if np.isfinite(v) else None for v in curve.threshold[idx]],
+    return {"threshold": [round(float(v), 5) if np.isfinite(v) else None for v in curve.threshold[idx]],
             "precision": [round(float(v), 4) for v in curve.precision[idx]],
             "recall": [round(float(v), 4) for v in curve.recall[idx]]}
 

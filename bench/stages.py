@@ -30,7 +30,8 @@ recall_at_1, pr_area, recall_at_precision at 0.9, 0.95, 1.0, the curve in at mos
 where it does not) and bench/results/
 stages.png (one panel per part). docs/mapping.md, "Reading bench/stages.py", says how to read them.
 Run: ``.venv/bin/python bench/stages.py [--parts nordland:0,gardens:hard:a,...] [--out FILE]``
-(the default: every part; about 9 minutes on 2 cores, 5.5 with A's features cached); ``--plot`` redraws the figure from --out.
+(the default: every part; about 9 minutes on 2 cores, 5.5 with A's features cached); ``--plot``
+redraws the figure from --out.
 """
 
 from __future__ import annotations

@@ -21,8 +21,9 @@ def run(cfg: FullRunConfig, run_dir: str | Path | None = None, resume: str | Pat
     """Run ``cfg`` to the end of its source or until interrupted; returns the report. ``resume``: a run folder to continue from its last
     complete checkpoint; ``map_path``: an exported map to start from (a new session on an old map)."""
     from .nodes.pipelines import build_plan
-    from .sources import source_factory
+    from .sources import source_factory, with_live_default
 
+    cfg = with_live_default(cfg)  # a live camera runs in real time unless the mode was named
     try:
         plan = build_plan(cfg)
         factory = source_factory(cfg.source.kind)

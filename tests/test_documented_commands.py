@@ -89,6 +89,9 @@ VALIDATE = {
     "-p domain_id=0 -p 'connect=[\"tcp/robot:7447\"]'",
     "neoslam run --ros2-out rmw --ros2-connect tcp/localhost:7447",
     "neoslam run --ros2-out bridge --ros2-connect tcp/localhost:7447",
+    "neoslam run --source camera -p device=0",
+    "neoslam run --source camera -p url=rtsp://192.168.1.64:554/stream1",
+    "neoslam run --source zenoh -p key=robot1/camera -p 'listen=[\"tcp/0.0.0.0:7450\"]'",
 }
 MAKE = {"make run", "make test", "make bench", "make", 'make run ARGS="--max-frames 300"'}
 ELSEWHERE = {
@@ -97,6 +100,8 @@ ELSEWHERE = {
     "ros2": "a ROS 2 installation's command (rmw_zenoh's router, foxglove_bridge), run on the ROS 2 side",
     "RMW_IMPLEMENTATION=rmw_zenoh_cpp": "RViz with rmw_zenoh, run on the ROS 2 side",
     "neoslam router": "a zenoh router that runs until Ctrl-C; tests/test_parts.py runs one on loopback",
+    "neoslam camera": "reads a camera on the robot until Ctrl-C; tests/test_sources_camera.py runs it on an "
+                      "MJPEG stream into a zenoh source, with the options the documents name",
     "pip install '.[view]'": "the Makefile's setup installs the [test] extra, which holds the viewer's rerun-sdk",
     "pip install .": "tests/test_packaging.py installs the wheel in a fresh venv and runs it",
     "pip install torch==2.13.0": "the Makefile's setup step, run by every `make run` / `make test`",

@@ -1,7 +1,7 @@
 """The ``neoslam`` command line; each command parses, calls the library and prints. run.py:
-``run``, ``view``, ``monitor``, ``router``; bench.py: ``bench``; data.py: ``config``, ``map``,
-``evaluate``, ``dataset``, ``compare``; report.py: what they print; flags.py: options that set a
-config value. ``neoslam`` with options and no command is ``neoslam run``."""
+``run``, ``view``, ``monitor``, ``router``; camera.py: ``camera``; bench.py: ``bench``; data.py:
+``config``, ``map``, ``evaluate``, ``dataset``, ``compare``; report.py: what they print; flags.py:
+options that set a config value. ``neoslam`` with options and no command is ``neoslam run``."""
 
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ def group(sub: argparse._SubParsersAction, name: str, dest: str, metavar: str,
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from . import bench, data, run
+    from . import bench, camera, data, run
 
     parser = argparse.ArgumentParser(
         prog="neoslam", description="NeoSLAM / RatSLAM as a multiprocess zenoh pipeline.",
@@ -33,6 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     run.register(sub)
+    camera.register(sub)
     bench.register(group(sub, "bench", "bench", "BENCH", help="benchmarks",
                          description="Benchmarks writing JSON reports."))
     data.register(sub)

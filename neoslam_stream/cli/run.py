@@ -43,7 +43,8 @@ def add_run_options(p: argparse.ArgumentParser) -> ConfigFlags:
                         f"(`neoslam config list`; default: {DEFAULT_CONFIG})")
     flags = ConfigFlags(p)
     flags.add("--source", path="source.kind",
-              help="source kind (synthetic, folder, video, bag, zenoh-ros2, zenoh, emulated)")
+              help="source kind (synthetic, folder, video, camera, bag, zenoh-ros2, zenoh, rmw-zenoh, "
+                   "emulated)")
     flags.add("--source-param", "-p", path="source.params", convert=_source_params, action="append",
               metavar="KEY=VALUE",
               help="source parameter, e.g. -p path=data/run1 (repeatable; values parsed as JSON)")

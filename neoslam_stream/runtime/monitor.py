@@ -35,7 +35,11 @@ def stats_table(stats: dict[str, dict[str, Any]], title: str = "neoslam") -> Any
     now = time.time()
     src = stats.get("source")
     if src is not None:
-        table.add_row("source", "", str(src.get("frames_in", 0)), "", "", "", "", "", str(src.get("errors", 0)), "", "")
+        table.add_row("source", "", str(src.get("frames_in", 0)), _source_rate(src), "", "", "",
+                      str(sum((src.get("lost_at_source") or {}).values())), str(src.get("errors", 0)), "", "")
+        camera = (src.get("info") or {}).get("camera")
+        if isinstance(camera, dict):
+            table.add_row(*camera_row(camera))
     for name, st in sorted(stats.items()):
         if name == "source":
             continue
@@ -47,6 +51,28 @@ def stats_table(stats: dict[str, dict[str, Any]], title: str = "neoslam") -> Any
                       str(st.get("errors", 0)), f"{st.get('cpu_percent', 0):.0f}",
                       f"{st.get('pss_mb') or st.get('rss_mb', 0):.0f}")
     return table
+
+
+def _source_rate(src: dict[str, Any]) -> str:
+    """Frames per second the source published, from its first to its last frame."""
+    first, last, n = src.get("first_publish"), src.get("last_publish"), int(src.get("frames_in") or 0)
+    return f"{(n - 1) / (last - first):.1f}" if first is not None and last is not None and last > first else ""
+
+
+def camera_row(camera: dict[str, Any]) -> list[str]:
+    """The monitor table's row of a live camera (a source's ``info["camera"]``, its own or a remote
+    publisher's): frames captured and sent on, its rate, drops, skipped frames, and its outages in
+    the name column."""
+    outages = int(camera.get("outage_count") or 0)
+    name = "  camera"
+    if camera.get("state") == "reopening":
+        name += f" (reopening, {camera.get('outage_now_s', 0):.0f} s)"
+    elif outages:
+        name += f" ({outages} outage{'s' if outages > 1 else ''}, {camera.get('outage_s', 0):.1f} s)"
+    sent = camera.get("published", camera.get("taken", 0))
+    rate = camera.get("rate_hz")
+    return [name, str(camera.get("captured", 0)), str(sent), "" if rate is None else f"{rate:.1f}", "", "", "",
+            str(camera.get("dropped", 0)), str(sum((camera.get("skipped") or {}).values())), "", ""]
 
 
 @dataclass

@@ -41,7 +41,10 @@ class SourceFrame:
 class Source(Protocol):
     """Iterate to get frames in order. ``rate_hz``: the recorded/nominal rate; ``length``: the
     number of frames when known (progress bars), None for live/unbounded sources. A source may also
-    have ``errors`` (records it skipped, counted per cause), which the runner reports."""
+    have ``errors`` (records it skipped, counted per cause), which the runner reports; in ``info()``,
+    ``dropped`` (frames its own ring dropped) and ``lost`` (frames it knows it lost, per cause: a
+    camera's outages), which count as frames lost at the source; and ``interrupt()``, which makes a
+    waiting iteration end soon (called from another thread at the run's stop or duration)."""
 
     rate_hz: float | None
     length: int | None

@@ -300,6 +300,10 @@ class SourceRunner:
         ring = info.get("dropped") if isinstance(info, dict) else None
         if isinstance(ring, int) and not isinstance(ring, bool) and ring > 0:
             lost_now[self.RING] = ring
+        known = info.get("lost") if isinstance(info, dict) else None
+        for cause, n in (known.items() if isinstance(known, dict) else ()):  # a live camera's outages...
+            if isinstance(n, int) and not isinstance(n, bool) and n > 0:
+                lost_now[str(cause)[:300]] = lost_now.get(str(cause)[:300], 0) + n
         data = {"stage": "source", "pid": os.getpid(), "frames_in": self.counts["image"],
                 "odom": self.counts["odom"], "published_ranges": [list(r) for r in self.ranges],
                 "lost_at_source": lost_now, "published_doomed": dict(self.doomed),
@@ -321,6 +325,23 @@ class SourceRunner:
                 self.publish_stats()
             except Exception as exc:  # stats must never stop the source
                 log.debug("source stats not published: %s", exc)
+
+    def watch_end(self, began: float) -> None:
+        """A live source can wait long for its next frame (a camera being reopened), and the
+        stream loop sees the run's stop and ``duration`` only between frames: on either, a source
+        with ``interrupt()`` is told to end its iteration (a thread)."""
+        interrupt = getattr(self.source, "interrupt", None)
+        if interrupt is None:
+            return
+        duration = self.spec.duration
+        while not self.done:
+            if self.stop.wait(0.2):
+                break
+            start = self.t0 if self.t0 is not None else began
+            if duration is not None and time.monotonic() - start >= duration:
+                break
+        if not self.done:
+            interrupt()
 
     # ------------------------------------------------------------------ progress bar
     def start_bar(self) -> None:
@@ -434,6 +455,7 @@ class SourceRunner:
         self.start_bar()
         self.publish_stats()  # "linked and about to read": tools waiting for the source see it now
         threading.Thread(target=self.stats_loop, name="source-stats", daemon=True).start()
+        threading.Thread(target=self.watch_end, args=(time.monotonic(),), name="source-end", daemon=True).start()
         try:
             self.stream()
             self.done = True

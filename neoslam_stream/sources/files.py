@@ -201,12 +201,27 @@ class ImageFolderSource(Source):
                 "max_side": self.max_side}
 
 
+def camera_hint(path: Any) -> str | None:
+    """The ``--source camera`` parameter for a video ``path`` that names a camera (an index, a
+    /dev/video device, an address such as rtsp://...), or None for a file name."""
+    if isinstance(path, int) and not isinstance(path, bool):
+        return f"-p device={path}"
+    if isinstance(path, str) and "://" in path:
+        return f"-p url={path}"
+    if isinstance(path, str) and path.startswith("/dev/"):
+        return f"-p device={path}"
+    return None
+
+
 class VideoSource(Source):
     """Frames of a video file (OpenCV), stamped by the container's frame rate; frames whose long
     side exceeds ``max_side`` pixels are resized."""
 
     def __init__(self, path: str, rate_hz: float | None = None, max_frames: int | None = None,
                  max_side: int | None = DEFAULT_MAX_SIDE) -> None:
+        camera = camera_hint(path)
+        if camera:
+            raise ValueError(f"{path!r} names a camera or a stream, not a video file: read it with --source camera {camera}")
         self.path = Path(path)
         self.max_side = max_side
         if not self.path.is_file():

@@ -8,7 +8,8 @@ topic gives the odometry of the interval since the previous frame. Connect to th
 (``connect: [tcp/<bridge-host>:7447]``).
 
 ``zenoh`` (:class:`ZenohImageSource`): our own msgpack ``image`` messages on any key (a non-ROS
-camera publishing with :func:`neoslam_stream.runtime.messages.encode`).
+camera publishing with :func:`neoslam_stream.runtime.messages.encode`, such as ``neoslam camera``,
+whose figures on ``<key>/stats`` reach the run's report and monitor through this source).
 
 Both are live (length None): they yield frames as they arrive, newest first when the consumer is
 slower (a small ring), until ``close()`` or ``timeout_s`` without frames. A bad sample is counted
@@ -28,6 +29,7 @@ from ..runtime.bus import open_session
 from ..runtime.messages import MessageError
 from ..runtime.messages import decode as decode_message
 from .base import Source, SourceFrame
+from .capture import loss_causes
 from .cdr import CdrError, decode
 from .imaging import DEFAULT_MAX_SIDE, decode_bounded, fit, needs_resize
 
@@ -80,10 +82,14 @@ class _Live(Source):
                 self._cond.wait(wait)
             return self._ring.popleft() if self._ring else None
 
-    def close(self) -> None:
+    def interrupt(self) -> None:
+        """End a waiting iteration soon (the run's stop or duration); ``close`` ends the session."""
         with self._cond:
             self._closed = True
             self._cond.notify_all()
+
+    def close(self) -> None:
+        self.interrupt()
         try:
             self._session.close()
         except Exception:
@@ -194,6 +200,12 @@ class ZenohImageSource(_Live):
     odometry: our ``odom`` messages on ``odom_key``, each the motion (vtrans, vrot, dt) of its own
     interval; the motions received between two images are summed into the later image's odometry.
     Raw frames whose long side exceeds ``max_side`` pixels are resized.
+
+    A publisher that numbers its frames consecutively (``neoslam camera`` does) has the gaps in
+    its numbers counted as frames lost on the way (``lost_before_source``; a number that goes back
+    is a publisher started again); ``stats`` messages on ``<key>/stats`` (``neoslam camera``'s
+    capture figures) become ``info()["camera"]``, and the camera's drops, outages and skipped frames
+    since this source first heard of it count as frames lost at the source.
     """
 
     def __init__(self, key: str, odom_key: str | None = None, connect: list[str] | None = None,
@@ -205,9 +217,25 @@ class ZenohImageSource(_Live):
         self.odom_key = odom_key
         self._acc = [0.0, 0.0]
         self._lock = threading.Lock()
+        self._last_number: int | None = None
+        self.lost_before_source = 0
+        self.camera: dict[str, Any] | None = None  # the publisher's newest figures, and the first
+        self._camera_baseline: dict[str, Any] | None = None
         self._sub = self._session.declare_subscriber(key, self._on_sample)
+        self._stats_sub = self._session.declare_subscriber(f"{key}/stats", self._on_camera_stats)
         if odom_key:
             self._odom_sub = self._session.declare_subscriber(odom_key, self._on_odom)
+
+    def _on_camera_stats(self, sample: Any) -> None:
+        try:
+            msg = decode_message(sample.payload.to_bytes(), expected_type="stats")
+        except MessageError as exc:
+            self._error(f"camera stats: {exc}")
+            return
+        with self._lock:
+            self.camera = dict(msg.data)
+            if self._camera_baseline is None:
+                self._camera_baseline = dict(msg.data)
 
     def _on_odom(self, sample: Any) -> None:
         try:
@@ -229,6 +257,9 @@ class ZenohImageSource(_Live):
         with self._lock:
             acc = tuple(self._acc)
             self._acc = [0.0, 0.0]
+            last, self._last_number = self._last_number, msg.frame
+            if last is not None and msg.frame > last + 1:
+                self.lost_before_source += msg.frame - last - 1
         self._push({"msg": msg, "acc": acc})
 
     def __iter__(self) -> Iterator[SourceFrame]:
@@ -253,5 +284,16 @@ class ZenohImageSource(_Live):
             frame += 1
 
     def info(self) -> dict[str, Any]:
-        return {"kind": "zenoh", "key": self.key, "odom_key": self.odom_key, "received": self.received,
-                "dropped": self.dropped, "errors": self.errors}
+        with self._lock:
+            camera, baseline = self.camera, self._camera_baseline
+            lost_on_way = self.lost_before_source
+        out: dict[str, Any] = {"kind": "zenoh", "key": self.key, "odom_key": self.odom_key, "received": self.received,
+                               "dropped": self.dropped, "errors": self.errors, "lost_before_source": lost_on_way}
+        lost = {"lost between the publisher and this source (gaps in its frame numbers)": lost_on_way}
+        if camera is not None and baseline is not None:
+            out["camera"] = camera
+            lost.update(loss_causes(camera, baseline, where="remote camera"))
+            drops = int(camera.get("dropped", 0)) - int(baseline.get("dropped", 0))
+            lost["remote camera: frames dropped by its publisher (it could not keep up)"] = drops
+        out["lost"] = {cause: n for cause, n in lost.items() if n > 0}
+        return out

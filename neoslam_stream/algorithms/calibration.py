@@ -106,6 +106,8 @@ class RunCalibration:
         #: templates on probation: (frame, the caller's key for the template, the key of what its
         #: frame matched), kept for one stretch of evidence (:meth:`on_new_template`)
         self.pending: list[tuple[int, int, int]] = []
+        #: the confidence the last accepted closure was decided on (None: the last frame closed none)
+        self.decided_confidence: float | None = None
 
     # ---------------------------------------------------------------- time
     def on_stamp(self, stamp: float) -> None:
@@ -160,22 +162,24 @@ class RunCalibration:
         """Frame t's best candidate (``ref``: the first frame of the place it matched, i.e. of its
         template, so that equivalent visits of one place agree; -1 for none) with its confidence:
         a closure when the L frames before t had consistent references and the mean confidence
-        of the L + 1 is >= 0. Call once per frame, in frame order."""
+        of the L + 1 is >= 0 (that mean, or with L = 0 the frame's confidence, is kept as
+        ``decided_confidence``). Call once per frame, in frame order."""
         n = self.sequence_frames
         if self.history.maxlen != max(n, 1):
             self.history = deque(self.history, maxlen=max(n, 1))
         ok = ref >= 0
+        total = confidence  # the stretch's confidence, summed below
         if ok and n:
             ok = refs_consistent({f: m for f, m, _ in self.history}, t, ref, n, self.max_step, self.slack)
             if ok:
                 conf = {f: c for f, _, c in self.history}
-                total = confidence
                 for i in range(1, n + 1):
                     total += conf[t - i]
                 ok = total / (n + 1) >= 0
         else:
             ok = ok and confidence >= 0
         self.history.append((t, ref, confidence if ref >= 0 else -math.inf))
+        self.decided_confidence = (total / (n + 1) if n else confidence) if ok else None
         if ok:
             self.closures += 1
             if self.first_closure_frame < 0:

@@ -14,8 +14,9 @@ from typing import Any, NamedTuple
 import numpy as np
 
 TEMPLATES_HEADER = "frame,stamp,template_id,is_loop_closure,best_interval,best_score\n"
-#: one row per loop closure: the matched frame opened the matched interval (or created the matched
-#: template); true_distance_m between the true positions of the two frames (empty without ground
+#: one row per match flagged as a loop closure (the evaluation tells loop closures from
+#: re-recognitions, evaluation/closures.py): the matched frame opened the matched interval (or
+#: created the matched template); true_distance_m between the true positions of the two frames (empty without ground
 #: truth); score and second_score are the front end's best and runner-up scores (D: overlaps;
 #: the oracle: distances in metres; empty where the front end has no runner-up) and margin their
 #: difference, how much the winner beat the runner-up (|score - second_score|: the best score is

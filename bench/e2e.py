@@ -3,13 +3,17 @@ route -> bench/results/e2e.json (discussed in docs/end_to_end.md and docs/mappin
 
 Per run {name} (neoslam, ratslam, paper_neoslam = configs/paper.yaml): {name}_mean_m / _max_m
 (trajectory APE after SE(2) alignment), {name}_map_trajectory_mean_m (trajectory_map.tum: every
-frame re-expressed on the final map), {name}_precision / _recall / _closures (a closure is correct
-when the frame where what it matched was first seen lies within ``closure_radius_m`` = 1 m of the
-frame's true position: ``neoslam evaluate``'s rule), {name}_precision_by_template (the matched
-template's first frame instead); odometry_mean_m, frames, fps_lossless, per-stage tau, the ratios
-to odometry, and ``targets``: the mapping targets and which this run reached (the Nordland
-row comes from the generalisation.json beside ``--out``, see ``bench/generalisation.py``). Also
-writes e2e_map.png. ``--inprocess``: the in-process API's cores instead of the processes of
+frame re-expressed on the final map), {name}_rpe_mean_m (the relative pose error over 1, 5 and
+10 m of travel), {name}_precision / _recall / _closures (``neoslam evaluate``'s rule: a match is a
+loop closure only when the robot travelled more than 5 m since the frame where what it matched was
+first seen, and correct when that frame lies within ``closure_radius_m`` = 1 m of the frame's true
+position), {name}_re_recognitions (the other matches: a place just passed), {name}_pr_area and
+_recall_at_precision (the precision-recall curve over the closures' confidence),
+{name}_precision_by_template (the matched template's first frame instead); odometry_mean_m, frames,
+fps_lossless, per-stage tau, the ratios to odometry, and ``targets``: the mapping targets and
+which this run reached (the Nordland row comes from the generalisation.json beside ``--out``, see
+``bench/generalisation.py``). Also writes e2e_map.png (NeoSLAM's map) and e2e_pr.png (the three
+precision-recall curves). ``--inprocess``: the in-process API's cores instead of the processes of
 ``neoslam run`` (no zenoh; the same templates and poses as a lossless run), for a loaded machine.
 Run: ``.venv/bin/python bench/e2e.py [--frames N] [--inprocess] [--out DIR]``.
 """
@@ -27,6 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from neoslam_stream.config import load_config  # noqa: E402
 from neoslam_stream.evaluation import evaluate_run, loop_closure_quality, read_tum  # noqa: E402
+from neoslam_stream.evaluation.plots import plot_pr  # noqa: E402
 from neoslam_stream.launch import run  # noqa: E402
 
 
@@ -84,6 +89,7 @@ def main() -> None:
     out = Path(args.out)
     work = out / "e2e_runs"
     res: dict = {"closure_radius_m": 1.0, "in_process": bool(args.inprocess)}
+    curves: dict = {}
     for name, pipeline, profile in (("neoslam", "neoslam", "default"), ("ratslam", "ratslam", "default"),
                                     ("paper_neoslam", "neoslam", "paper")):
         params = {"seed": 0}
@@ -115,6 +121,12 @@ def main() -> None:
         res[f"{name}_precision_by_template"] = by_template["precision"]
         res[f"{name}_recall"] = ev["loop_closures"]["recall"]
         res[f"{name}_closures"] = ev["loop_closures"]["closures"]
+        res[f"{name}_re_recognitions"] = ev["loop_closures"]["re_recognitions"]["count"]
+        pr = ev["loop_closures"].get("precision_recall") or {}
+        res[f"{name}_pr_area"] = pr.get("area")
+        res[f"{name}_recall_at_precision"] = pr.get("recall_at_precision")
+        res[f"{name}_rpe_mean_m"] = {k: v["mean_m"] for k, v in ev["trajectory_rpe"].items()}
+        curves[name] = ev["loop_closures"]
         if name == "neoslam":
             res["odometry_mean_m"] = ev["odometry_ape"]["mean_m"]
             res["odometry_max_m"] = ev["odometry_ape"]["max_m"]
@@ -128,6 +140,8 @@ def main() -> None:
     if "neoslam_map_trajectory_mean_m" in res:
         res["neoslam_map_trajectory_vs_odometry"] = res["neoslam_map_trajectory_mean_m"] / res["odometry_mean_m"]
     res["targets"] = targets_reached(res)
+    plot_pr({"NeoSLAM (default)": curves["neoslam"], "NeoSLAM (paper)": curves["paper_neoslam"],
+             "RatSLAM": curves["ratslam"]}, out / "e2e_pr.png")
     gen = out / "generalisation.json"  # the Nordland row comes from bench/generalisation.py
     if gen.exists() and "nordland:0" in (g := json.loads(gen.read_text())).get("test", {}):
         nd = g["test"]["nordland:0"]["default"]

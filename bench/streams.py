@@ -6,10 +6,13 @@ ground truth. ``score`` turns the (frame, matched frame) pairs of a run's loop c
 precision and recall: a two-traversal stream (Nordland summer then winter, Gardens Point's
 reference walk then its query walk) counts a closure of the second traversal correct when it lands
 within the protocol's tolerance of the same place in the first, recall over the second traversal's
-frames that have a place there; the synthetic worlds count a closure correct when the matched frame
-was within 1 m, recall over the frames that revisit a place seen at least 5 m of travel earlier (onto
-such a place). ``recognition_truth`` gives bench/stages.py each query's candidates and which of them
-are right. A stream whose data is absent raises :class:`MissingData` with a one-line reason.
+frames that have a place there; the synthetic worlds judge the pairs as ``neoslam evaluate`` does
+(``evaluation.closure_figures``): a pair is a loop closure only when the robot travelled more than
+5 m (five 1-m radii) since the matched frame, else a re-recognition counted apart; a closure is
+correct when the matched frame was within 1 m, recall over the frames that revisit a place seen at
+least 5 m of travel earlier (facing the same way). ``recognition_truth`` gives bench/stages.py each
+query's candidates and which of them are right. A stream whose data is absent raises
+:class:`MissingData` with a one-line reason.
 """
 
 from __future__ import annotations
@@ -24,9 +27,12 @@ from bench_settings import datasets_cache, load_settings
 
 from neoslam_stream.algorithms.frontend import FrontEnd
 from neoslam_stream.config import load_config
+from neoslam_stream.evaluation import closure_figures, left_distance, travelled
 
 RADIUS_M = 1.0
-REVISIT_TRAVEL_M = 5.0
+#: the travel after which the robot has left a place: a later match is a loop closure, a later
+#: frame there a revisit (evaluation.left_distance: 5 m at 1 m)
+REVISIT_TRAVEL_M = left_distance(RADIUS_M)
 #: frames 800-2400 of each pass of the default's looped synthetic route: the stretch every pass
 #: revisits (the closures per pass of bench/soak.py and studies/passes.py)
 STRETCH = (800, 2400)
@@ -117,18 +123,20 @@ def _score_traversals(pairs: list[tuple[int, int]], tr: dict[str, Any]) -> dict[
 
 
 def _score_world(pairs: list[tuple[int, int]], tr: dict[str, Any]) -> dict[str, Any]:
+    """The pairs judged by ``evaluation.closure_figures``: loop closures (more than
+    ``REVISIT_TRAVEL_M`` travelled since the matched frame) with their precision and recall, and
+    the re-recognitions beside them."""
     gt, path, revisit = tr["gt"], tr["path"], tr["revisit"]
-    near = [float(np.hypot(*(gt[t, :2] - gt[m, :2]))) <= RADIUS_M for t, m in pairs]
-    found = sum(1 for (t, m), ok in zip(pairs, near, strict=True)
-                if ok and revisit[t] and path[m] <= path[t] - REVISIT_TRAVEL_M)
-    n_rev = int(revisit.sum())
-    return {"closures": len(pairs), "correct": int(sum(near)),
-            "precision": float(np.mean(near)) if pairs else None, "recall": found / n_rev if n_rev else 0.0,
-            "revisit_frames": n_rev}
+    t, m = (np.array([p[k] for p in pairs], dtype=np.int64) for k in (0, 1))
+    res = closure_figures(gt[t, :2], gt[m, :2], path[t] - path[m], revisit[t], int(revisit.sum()), RADIUS_M,
+                          REVISIT_TRAVEL_M)
+    if res["recall"] is None:  # no revisiting frame: nothing to find
+        res["recall"] = 0.0
+    return res
 
 
 def _world_truth(gt: np.ndarray) -> dict[str, Any]:
-    path = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(gt[:, 0]), np.diff(gt[:, 1])))])
+    path = travelled(gt[:, :2])
     revisit = np.zeros(len(gt), bool)
     for j in range(len(gt)):
         old = path <= path[j] - REVISIT_TRAVEL_M

@@ -56,8 +56,11 @@ def test_a_closure_needs_consistent_evidence_over_the_stretch_of_travel():
     # references advancing with the queries, mean confidence 0.5 >= 0: a closure at the 4th frame
     decided = [cal.accept(t, 100 + t, c) for t, c in zip(range(10, 14), (1.0, -0.5, 1.0, 0.5), strict=True)]
     assert decided == [False, False, False, True]
-    # a jump of the reference by 40 frames is no consistent sequence
+    # the closure keeps the confidence it was decided on: the stretch's mean, (1 - 0.5 + 1 + 0.5) / 4
+    assert cal.evidence == pytest.approx(0.5)
+    # a jump of the reference by 40 frames is no consistent sequence: no evidence
     assert cal.accept(14, 160, 5.0) is False
+    assert cal.evidence == -math.inf
     # a run of weak evidence (mean < 0) is refused even when consistent
     cal2 = _cal(sequence_m=2.5)
     for t in range(6):
@@ -111,6 +114,9 @@ def test_d_closes_the_loop_of_a_second_traversal_and_nothing_else():
     assert not any(r["is_loop_closure"] for r in first)
     closures = [(i, r) for i, r in enumerate(second) if r["is_loop_closure"]]
     assert len(closures) >= 60  # most revisits found
+    # each closure carries the confidence it was decided on (>= 0: accepted); other frames none
+    assert all(r["confidence"] >= 0 for _, r in closures)
+    assert not any("confidence" in r for r in first)
     starts = d.interval_start
     assert all(starts[r["best_interval"]] == i for i, r in closures)  # each onto its own place
     rep = d.calibration.report()

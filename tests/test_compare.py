@@ -43,5 +43,12 @@ def test_compare_runs_every_pipeline_on_the_same_frames_and_shares_common_stages
     paper = np.loadtxt(out / "paper" / "templates.csv", delimiter=",", skiprows=1)
     assert np.array_equal(mine[:, 0], paper[:, 0]) and np.array_equal(mine[:, 5], paper[:, 5])
     assert np.all(mine[:, 3] >= paper[:, 3])
+    # 60 frames (1.8 m of travel) revisit nothing: every match is a re-recognition, none a loop closure
+    assert (out / "compare_pr.png").exists()
+    assert table["neoslam"]["loop_closures"] == table["neoslam_paper"]["loop_closures"] == 0
+    assert table["neoslam"]["loop_re_recognitions"] == int(mine[:, 3].sum()) > 0
+    assert table["neoslam_paper"]["loop_re_recognitions"] == int(paper[:, 3].sum())
     printed = capsys.readouterr().out
     assert "NeoSLAM (paper)" in printed and "RatSLAM" in printed and "within 0.5 m" in printed
+    assert (f"re-recognitions of a place just passed (not loop closures): NeoSLAM (default) "
+            f"{int(mine[:, 3].sum())}, NeoSLAM (paper) {int(paper[:, 3].sum())}, RatSLAM") in printed

@@ -40,6 +40,7 @@ def test_spatial_view_reports_the_runner_up():
     # scores: interval 0 -> 5 (0..4), interval 1 -> 0, interval 2 -> 4 (0..3); 5 > theta_sigma 4
     assert r["is_loop_closure"] and (r["best_interval"], r["best_score"]) == (0, 5)
     assert (r["second_interval"], r["second_score"]) == (2, 4)
+    assert r["confidence"] == 5 - 4  # the paper's rule: the score less theta_sigma
     # a single candidate has no runner-up
     d = SpatialViewCells(theta_alpha=3, theta_rho=0, theta_sigma=4, exclude_recent_intervals=1, sdr_size=256)
     d.compute(np.array([0, 1, 2, 3, 4, 5], np.uint32))
@@ -93,7 +94,13 @@ def test_closures_csv_rows_by_hand(tmp_path):
             rec.process(VISUAL_TEMPLATE, _vt(f, interval, interval=interval))
     # written as it came, before the end of the run
     rows = (tmp_path / "closures.csv").read_text()
-    assert rows == CLOSURES_HEADER + "5,0.500000,1,2,3.000,480,470,10\n"
+    assert rows == CLOSURES_HEADER + "5,0.500000,1,2,3.000,480,470,10,\n"
+    # a closure's confidence is its last column
+    rec.process(GROUNDTRUTH, _gt(6, 2.5, 0.0))
+    vt = _vt(6, 1, True, best=1, score=470, second=400, interval=3)
+    vt.data["confidence"] = 1.25
+    rec.process(VISUAL_TEMPLATE, vt)
+    assert (tmp_path / "closures.csv").read_text().endswith("6,0.600000,1,2,0.500,470,400,70,1.25\n")
     rec.flush()
     rec.close()
 
@@ -117,8 +124,8 @@ def test_a_restarted_recorder_neither_loses_nor_doubles_closure_rows(tmp_path):
     # closures at frames 3..7, each matched to frame 0 (template 0's first frame, which the second
     # recorder reads back from templates.csv), x = f % 3; the true position of frame 0 died with the
     # first recorder (no checkpoint), so the new rows' distances are unknown, not wrong
-    want = "".join(f"{f},{0.1 * f:.6f},0,0,{f % 3:.3f},{0.5 * f:g},,\n" for f in range(3, 6))
-    want += "".join(f"{f},{0.1 * f:.6f},0,0,,{0.5 * f:g},,\n" for f in range(6, 8))
+    want = "".join(f"{f},{0.1 * f:.6f},0,0,{f % 3:.3f},{0.5 * f:g},,,\n" for f in range(3, 6))
+    want += "".join(f"{f},{0.1 * f:.6f},0,0,,{0.5 * f:g},,,\n" for f in range(6, 8))
     assert (tmp_path / "closures.csv").read_text() == CLOSURES_HEADER + want
 
 
@@ -133,7 +140,7 @@ def test_a_recorder_restored_from_a_checkpoint_keeps_the_places(tmp_path):
     _feed_line(second, range(5, 8))
     second.flush()
     second.close()
-    want = "".join(f"{f},{0.1 * f:.6f},0,0,{f % 3:.3f},{0.5 * f:g},,\n" for f in range(3, 8))
+    want = "".join(f"{f},{0.1 * f:.6f},0,0,{f % 3:.3f},{0.5 * f:g},,,\n" for f in range(3, 8))
     assert (tmp_path / "closures.csv").read_text() == CLOSURES_HEADER + want
 
 
@@ -145,7 +152,7 @@ def test_closure_rows_without_ground_truth_have_an_empty_distance(tmp_path):
     rec.process(VISUAL_TEMPLATE, _vt(2, 0, True, score=0.25))  # a local view: a template, no interval
     rec.flush()
     rec.close()
-    assert (tmp_path / "closures.csv").read_text() == CLOSURES_HEADER + "2,0.200000,0,0,,0.25,,\n"
+    assert (tmp_path / "closures.csv").read_text() == CLOSURES_HEADER + "2,0.200000,0,0,,0.25,,,\n"
 
 
 @pytest.mark.zenoh

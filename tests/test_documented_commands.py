@@ -85,6 +85,7 @@ VALIDATE = {
     "neoslam run --oracle-templates --oracle-radius 0.25 --max-frames 1200",
     "neoslam run --oracle-templates --oracle-heading-tolerance 180",
     "neoslam compare --max-frames 300",
+    "neoslam run --max-frames 200 --trace runs/trace.json",
     "neoslam run --realtime --source rmw-zenoh -p image_topic=/camera/image_raw -p odom_topic=/odom "
     "-p domain_id=0 -p 'connect=[\"tcp/robot:7447\"]'",
     "neoslam run --ros2-out rmw --ros2-connect tcp/localhost:7447",
@@ -105,6 +106,10 @@ ELSEWHERE = {
     "pip install '.[view]'": "the Makefile's setup installs the [test] extra, which holds the viewer's rerun-sdk",
     "pip install .": "tests/test_packaging.py installs the wheel in a fresh venv and runs it",
     "pip install torch==2.13.0": "the Makefile's setup step, run by every `make run` / `make test`",
+    "pip install evo": "evo, a GPL tool kept outside the package (its own environment); tests/test_evo.py runs it "
+                       "where it is installed",
+    "evo_ape": "evo's command, an outside tool; tests/test_evo.py runs it on our TUM files where evo is installed",
+    "evo_rpe": "evo's command, an outside tool; tests/test_evo.py runs it on our TUM files where evo is installed",
 }
 PLACEHOLDER = re.compile(r"\b(RUN_DIR|OLD_RUN_DIR|DIR|FILE|MAP_FILE|CONFIG|NAME|KIND|HZ|N|S|X|FRAMES)\b")
 FLAG = re.compile(r"(?<![\w-])(--?[A-Za-z][\w-]*)")

@@ -69,8 +69,9 @@ def test_loop_closure_precision_and_recall_hand_made(tmp_path):
     q = loop_closure_quality(tmp_path / "templates.csv", gt, radius=1.0)
     assert (q["closures"], q["correct"], q["revisit_frames"]) == (3, 2, 50)
     assert q["precision"] == pytest.approx(2 / 3) and q["recall"] == pytest.approx(2 / 50)
-    # a radius of 25 m accepts the false one too; with a 60 s gap nothing counts as a revisit
-    assert loop_closure_quality(tmp_path / "templates.csv", gt, radius=25.0)["correct"] == 3
+    # a radius of 25 m accepts the false one too (left after 5 m still: the default, 5 radii, is
+    # 125 m); with a 60 s gap nothing counts as a revisit
+    assert loop_closure_quality(tmp_path / "templates.csv", gt, radius=25.0, left_m=5.0)["correct"] == 3
     assert loop_closure_quality(tmp_path / "templates.csv", gt, min_gap_s=60.0)["recall"] is None
 
 

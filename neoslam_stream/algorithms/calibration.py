@@ -163,17 +163,18 @@ class RunCalibration:
         """Frame t's best candidate (``ref``: the first frame of the place it matched, i.e. of its
         template, so that equivalent visits of one place agree; -1 for none) with its confidence:
         a closure when the L frames before t had consistent references and the mean confidence
-        of the L + 1 is >= 0 (that mean is kept as ``evidence``). Call once per frame, in frame order."""
+        of the L + 1 is >= 0 (that mean, or with L = 0 the frame's confidence, is kept as
+        ``evidence``). Call once per frame, in frame order."""
         n = self.sequence_frames
         self.evidence = -math.inf
         if self.history.maxlen != max(n, 1):
             self.history = deque(self.history, maxlen=max(n, 1))
         ok = ref >= 0
+        total = confidence  # the stretch's confidence, summed below
         if ok and n:
             ok = refs_consistent({f: m for f, m, _ in self.history}, t, ref, n, self.max_step, self.slack)
             if ok:
                 conf = {f: c for f, _, c in self.history}
-                total = confidence
                 for i in range(1, n + 1):
                     total += conf[t - i]
                 self.evidence = total / (n + 1)

@@ -123,7 +123,7 @@ class FrontEnd:
     def template(self, cells: np.ndarray, stamp: float | None = None) -> Template:
         """D: one frame's winner cells (and its stamp, seconds) -> its visual template."""
         res = self.spatial_view.compute(cells, stamp)
-        return {k: res[k] for k in Template.__annotations__}  # type: ignore[return-value]
+        return {k: res[k] for k in Template.__annotations__ if k in res}  # type: ignore[return-value]
 
     def warm_up(self, parts: Sequence[str] = ("projector", "neocortex", "spatial_view")) -> None:
         """Build ``parts`` and compile the kernels of B's, C's and D's before the first frame (A's
@@ -177,8 +177,15 @@ class LocalViewFrontEnd:
         loop = len(self.cells.templates) == n_before and vt != self.prev
         self.prev = vt
         self.frame += 1
-        return {"id": vt, "relative_rad": rad, "is_loop_closure": bool(loop), "best_interval": -1,
-                "best_score": float(self.cells.last_error)}
+        out: Template = {"id": vt, "relative_rad": rad, "is_loop_closure": bool(loop), "best_interval": -1,
+                         "best_score": float(self.cells.last_error)}
+        # what the decision was sure of (records.Template.confidence); none for a match to a young
+        # template under the calibrated decision (OpenRatSLAM's rule decided it, on another scale)
+        if loop and not self.config.calibration.enabled:
+            out["confidence"] = float(self.config.vt_match_threshold - self.cells.last_error)
+        elif loop and self.calibration.evidence >= 0:  # the calibrated decision accepted it
+            out["confidence"] = float(self.calibration.evidence)
+        return out
 
     def _calibrated(self, pixels: np.ndarray, stamp: float) -> tuple[int, float]:
         cells, cal = self.cells, self.calibration

@@ -56,6 +56,12 @@ class Template(TypedDict):
     second_score: NotRequired[float]
     #: D's current interval (a matched interval is mapped to the frame that opened it)
     interval: NotRequired[int]
+    #: a loop closure's confidence, higher is surer and 0 at the decision's threshold, for the
+    #: precision-recall curve (closures.csv): the calibrated decision's mean confidence over its
+    #: stretch of evidence (in standard deviations of unrelated places' scores); D's paper rule
+    #: its score less theta_sigma; the local view's OpenRatSLAM rule vt_match_threshold less its
+    #: error; the oracle its radius less the distance
+    confidence: NotRequired[Annotated[float, Finite]]
 
 
 @dataclass

@@ -190,9 +190,13 @@ class SpatialViewCells:
             self._confirm_duplicates(loop, new_interval and not loop, best)
         self.current_template = template
         self.t += 1
-        return {"id": template, "is_loop_closure": bool(loop), "best_interval": best if loop else -1,
-                "best_score": best_score, "relative_rad": 0.0, "interval": self.n_intervals - 1,
-                "second_interval": second, "second_score": second_score}
+        out = {"id": template, "is_loop_closure": bool(loop), "best_interval": best if loop else -1,
+               "best_score": best_score, "relative_rad": 0.0, "interval": self.n_intervals - 1,
+               "second_interval": second, "second_score": second_score}
+        if loop:  # what the decision was sure of (records.Template.confidence)
+            out["confidence"] = float(self.calibration.evidence if cfg.calibration.enabled
+                                      else best_score - cfg.theta_sigma)
+        return out
 
     def _close_interval(self, k: int) -> None:
         """Interval k is complete (k + 1 opens): into the index as its next slot, unless revisits

@@ -166,6 +166,11 @@ def cmd_compare(args: argparse.Namespace) -> int:
     except RunError as exc:
         return error(exc, 1)
     print_summary(res.report)
-    print_compare(compare_runs(out, res.report, radius=args.radius), args.radius)
-    print(f"compare.json and compare.png in {out}")
+    table = compare_runs(out, res.report, radius=args.radius)
+    print_compare(table, args.radius)
+    rr = [f"{row['label']} {row['loop_re_recognitions']}" for row in table.values()
+          if row.get("loop_re_recognitions") is not None and not row.get("same_as_default")]
+    if rr:  # the matches the closures leave out (docs/evaluation.md, "Loop closures and re-recognitions")
+        print(f"re-recognitions of a place just passed (not loop closures): {', '.join(rr)}")
+    print(f"compare.json, compare.png and compare_pr.png in {out}")
     return 0

@@ -100,8 +100,17 @@ def print_evaluation(ev: dict[str, Any]) -> None:
     if "map_trajectory_ape" in ev:
         print(f"trajectory on the final map (trajectory_map.tum) APE mean {ev['map_trajectory_ape']['mean_m']:.3f} m "
               f"(max {ev['map_trajectory_ape']['max_m']:.3f})")
+    rpe = ev.get("trajectory_rpe") or {}
+    if rpe:
+        print("trajectory RPE (the motion's error over a stretch of travel, mean): "
+              + ", ".join(f"{v['mean_m']:.3f} m over {v['delta_m']:g} m" for v in rpe.values() if v.get("mean_m") is not None))
     if "loop_closures" in ev:
         print(closures_line(ev["loop_closures"]))
+        pr = ev["loop_closures"].get("precision_recall")
+        if pr:
+            ps, rs = zip(*pr["recall_at_precision"].items(), strict=True)
+            print(f"  precision-recall by confidence: area {pr['area']:.2f}; recall at precision "
+                  f"{' / '.join(ps)}: {' / '.join(f'{r:.2f}' for r in rs)} (pr_curve.png)")
     print("evaluation.json and map.png written")
 
 

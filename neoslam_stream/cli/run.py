@@ -83,13 +83,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     flags = add_run_options(p)
     flags.add("--checkpoint-every", path="run.checkpoint_every",
               help="save every stage's state every N frames")
+    flags.add("--trace", path="run.trace", metavar="FILE",
+              help="write every frame's path through the stages (received, started, finished per stage "
+                   "and process) to FILE as a Chrome / Perfetto trace: open it in ui.perfetto.dev")
     p.add_argument("--resume", metavar="RUN_DIR", help="resume from the last checkpoint of RUN_DIR")
     p.add_argument("--map", metavar="MAP_FILE", help="start from a map exported by `neoslam map export` "
                    "(long-term deployment)")
     flags.add("--pipeline", path="run.pipeline", help="pipeline name (neoslam, ratslam, oracle, emulated)")
     flags.add("--oracle-templates", path="run.pipeline", sets="oracle",
               help="template ids from ground truth instead of the front end (A-D): the back end's "
-                   "best map (the `oracle` pipeline; docs/evaluation.md)")
+                   "best map (the `oracle` pipeline; docs/end_to_end.md)")
     flags.add("--oracle-radius", path="oracle.radius_m", metavar="M",
               help="the oracle's template radius in metres (default: exp_delta_pc_threshold x "
                    "pc_cell_x_size, the experience spacing)")
@@ -205,6 +208,14 @@ def cmd_run(args: argparse.Namespace) -> int:
             print_evaluation(evaluate_run(run_dir))
         except StampMismatch as exc:  # e.g. no pose came out: the run's files say what there is
             print(f"no evaluation: {exc}")
+    elif not (run_dir / "groundtruth.tum").exists():  # no judgement, but which matches were returns
+        from ..evaluation import closures_by_odometry
+
+        split = closures_by_odometry(run_dir)
+        if split is not None:
+            print(f"closures (no ground truth, not judged): {split['closures']} loop closures and "
+                  f"{split['re_recognitions']} re-recognitions of a place just passed (left after "
+                  f"{split['left_m']:g} m of travel by odometry.tum)")
     if result.interrupted:  # the shell convention: 128 + the signal (130 for Ctrl-C, 143 for SIGTERM)
         return 128 + (result.signal or 2)
     return 0

@@ -1,5 +1,6 @@
 """NeoSLAM (the run's config), NeoSLAM (the paper's profile) and RatSLAM on the same stream: the
-comparison table (compare.json) and figure (compare.png)."""
+comparison table (compare.json) and figures (compare.png: the maps; compare_pr.png: the loop
+closures' precision-recall curves on one plot)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from . import evaluate_run
-from .plots import plot_compare
+from .plots import plot_compare, plot_pr
 
 #: the branches of a ``neoslam compare`` run: compare.json key, label, sub-folder, node prefix
 BRANCHES = (("neoslam", "NeoSLAM (default)", "", ""), ("neoslam_paper", "NeoSLAM (paper)", "paper", "pp_"),
@@ -39,8 +40,8 @@ def _branch_stages(key: str, stages: dict[str, Any]) -> dict[str, Any]:
 def compare_runs(out: Path, report: dict[str, Any], radius: float = 1.0) -> dict[str, Any]:
     """Evaluate a ``neoslam compare`` run folder (NeoSLAM in ``out``, the paper's profile in
     ``out/paper`` unless it equals the run's config, RatSLAM in ``out/ratslam``): returns the table
-    (closure precision and recall at ``radius`` metres), and writes compare.json and compare.png
-    into ``out``."""
+    (closure precision and recall at ``radius`` metres), and writes compare.json, compare.png and
+    compare_pr.png into ``out``."""
     dirs: dict[str, Path] = {}
     for key, _label, sub, _prefix in BRANCHES:
         d = out / sub if sub else out
@@ -53,6 +54,7 @@ def compare_runs(out: Path, report: dict[str, Any], radius: float = 1.0) -> dict
                 shutil.copy(out / name, d / name)
     stages = report.get("stages", {})
     table: dict[str, Any] = {}
+    closures: dict[str, Any] = {}
     for key, label, _sub, _prefix in BRANCHES:
         d = dirs[key]
         ev = evaluate_run(d, radius=radius) if (d / "groundtruth.tum").exists() else {}
@@ -72,13 +74,18 @@ def compare_runs(out: Path, report: dict[str, Any], radius: float = 1.0) -> dict
             "loop_correct": lc.get("correct"),
             "loop_precision": lc.get("precision"),
             "loop_recall": lc.get("recall"),
+            "loop_re_recognitions": (lc.get("re_recognitions") or {}).get("count"),
+            "loop_pr_area": (lc.get("precision_recall") or {}).get("area"),
+            "loop_recall_at_precision": (lc.get("precision_recall") or {}).get("recall_at_precision"),
             "loop_radius_m": radius,
             "stage_tau_p50_ms": {s: v.get("tau_p50_ms") for s, v in mine.items()},
         }
+        closures[label] = {} if table[key]["same_as_default"] else lc  # one curve per distinct branch
         if key == "neoslam" and "odometry_ape" in ev:
             table["odometry"] = {"label": "odometry", "trajectory_ape_mean_m": ev["odometry_ape"]["mean_m"],
                                  "trajectory_ape_max_m": ev["odometry_ape"]["max_m"]}
     (out / "compare.json").write_text(json.dumps(table, indent=2))
     plot_compare({table[k]["label"]: dirs[k] for k, *_ in BRANCHES}, out / "compare.png",
                  {table[k]["label"]: table[k]["trajectory_ape_mean_m"] for k, *_ in BRANCHES})
+    plot_pr({k: v for k, v in closures.items() if v}, out / "compare_pr.png")
     return table

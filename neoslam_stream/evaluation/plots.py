@@ -1,5 +1,6 @@
-"""Plots of runs: the map against ground truth and odometry (map.png), and NeoSLAM vs RatSLAM on
-the same stream (compare.png)."""
+"""Plots of runs: the map against ground truth and odometry (map.png), the loop closures'
+precision-recall curve (pr_curve.png), and NeoSLAM vs RatSLAM on the same stream (compare.png,
+compare_pr.png)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ..tum import read_tum
-from . import associate, umeyama_se2
+from .poses import associate, umeyama_se2
 
 
 def synthetic_walls(run_dir: Path) -> np.ndarray | None:
@@ -126,5 +127,41 @@ def plot_compare(dirs: dict[str, Path], out: Path, ape: dict[str, float | None] 
         ax.set_title(name if a is None else f"{name}: APE mean {a:.2f} m", fontsize=10)
         ax.set_aspect("equal")
         ax.legend(loc="best", fontsize=7)
+    fig.savefig(out, dpi=110, bbox_inches="tight")
+    plt.close(fig)
+
+
+def plot_pr(closures: dict[str, dict], out: Path) -> None:
+    """The loop closures' precision-recall curves (``pr_curve.png``; ``compare_pr.png`` with one
+    curve per pipeline): ``closures``: label -> evaluation.json's ``loop_closures``. Each curve runs
+    from the most confident closure to the run's own decision (marked), recall over the revisiting
+    frames; the legend gives its area (average precision)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5.5, 4.5))
+    drawn = 0
+    for (name, lc), colour in zip(closures.items(), ("b", "m", "g", "c", "y"), strict=False):
+        pr = (lc or {}).get("precision_recall")
+        if not pr or not pr["curve"]["recall"]:
+            continue
+        drawn += 1
+        r, p = [0.0, *pr["curve"]["recall"]], [pr["curve"]["precision"][0], *pr["curve"]["precision"]]
+        ax.step(r, p, where="post", color=colour, label=f"{name}: area {pr['area']:.2f}, "
+                f"{lc['closures']} closures, {lc['re_recognitions']['count']} re-recognitions")
+        ax.plot(r[-1:], p[-1:], "o", color=colour)
+    ax.set_xlim(0, 1.02)
+    ax.set_ylim(0, 1.02)
+    ax.set_xlabel("recall (revisiting frames closed correctly)")
+    ax.set_ylabel("precision (loop closures correct)")
+    radius = next((lc.get("radius_m") for lc in closures.values() if lc), None)
+    ax.set_title(f"loop closures within {radius:g} m, ranked by confidence (dot: the run's decision)"
+                 if radius is not None else "loop closures", fontsize=9)
+    if drawn:
+        ax.legend(loc="lower left", fontsize=7)
+    else:
+        ax.text(0.5, 0.5, "no loop closure, or no revisiting frame: no curve", ha="center", fontsize=9)
     fig.savefig(out, dpi=110, bbox_inches="tight")
     plt.close(fig)

@@ -34,6 +34,8 @@ class OracleNode(Node):
                           "relative_rad": 0.0, "best_score": res["best_score"]}
         if res["second_score"] is not None:
             data["second_score"] = res["second_score"]
+        if res["is_loop_closure"]:  # the nearer the place, the surer (records.Template.confidence)
+            data["confidence"] = self.oracle.radius - float(res["best_score"])
         return [(VISUAL_TEMPLATE, msg.derive(VISUAL_TEMPLATE, data))]
 
     def info(self) -> dict[str, Any]:

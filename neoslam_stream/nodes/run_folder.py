@@ -140,7 +140,8 @@ class RunFolder:
             matched = self.interval_first.get(best, -1) if interval is not None and best >= 0 \
                 else self.template_first.get(tid, -1)
             self.closures_waiting.append(WaitingClosure(frame, stamp, tid, matched, self.gt.get(frame),
-                                                        t.get("best_score"), t.get("second_score")))
+                                                        t.get("best_score"), t.get("second_score"),
+                                                        t.get("confidence")))
         # true positions of frames whose template has come are needed only as places
         for g in [g for g in self.gt if g < frame]:
             del self.gt[g]
@@ -186,7 +187,7 @@ class RunFolder:
             self.closures_waiting.pop(0)
             dist = None if pos is None or place is None else float(np.hypot(pos[0] - place[0], pos[1] - place[1]))
             self._add(CLOSURES, ClosureRow(r.frame, r.stamp, r.template_id, r.matched_frame, dist, r.score,
-                                           r.second_score))
+                                           r.second_score, r.confidence))
 
     def _add(self, file: RowFile, row: Any) -> None:
         if not self.run_dir:
@@ -396,7 +397,7 @@ class RunFolder:
 
         return {"templates": [list(r) for r in self.templates], "trajectory": [list(r) for r in self.trajectory],
                 "closures": [list(r) for r in self.closures],
-                "closures_waiting": [[*r[:4], None if r.true_xy is None else list(r.true_xy), r.score, r.second_score]
+                "closures_waiting": [[*r[:4], None if r.true_xy is None else list(r.true_xy), *r[5:]]
                                      for r in self.closures_waiting],
                 "template_first": ints(self.template_first), "interval_first": ints(self.interval_first),
                 "places": where(self.places), "gt": where(self.gt), "gt_last_frame": self.gt_last_frame,
@@ -410,9 +411,10 @@ class RunFolder:
         self.rows[TRAJECTORY] = [PoseRow(int(r[0]), float(r[1]), float(r[2]), float(r[3]), float(r[4]), int(r[5]))
                                  for r in st["trajectory"]]
         self.rows[CLOSURES] = [ClosureRow(int(r[0]), float(r[1]), int(r[2]), int(r[3]),
-                                          None if r[4] is None else float(r[4]), r[5], r[6]) for r in st["closures"]]
+                                          None if r[4] is None else float(r[4]), r[5], r[6], r[7]) for r in st["closures"]]
         self.closures_waiting = [WaitingClosure(int(r[0]), float(r[1]), int(r[2]), int(r[3]),
-                                                None if r[4] is None else (float(r[4][0]), float(r[4][1])), r[5], r[6])
+                                                None if r[4] is None else (float(r[4][0]), float(r[4][1])), r[5], r[6],
+                                                r[7])
                                  for r in st["closures_waiting"]]
         self.template_first = {int(k): int(v) for k, v in np.asarray(st["template_first"], dtype=np.int64).reshape(-1, 2)}
         self.interval_first = {int(k): int(v) for k, v in np.asarray(st["interval_first"], dtype=np.int64).reshape(-1, 2)}

@@ -14,13 +14,15 @@ from typing import Any, NamedTuple
 import numpy as np
 
 TEMPLATES_HEADER = "frame,stamp,template_id,is_loop_closure,best_interval,best_score\n"
-#: one row per loop closure: the matched frame opened the matched interval (or created the matched
-#: template); true_distance_m between the true positions of the two frames (empty without ground
+#: one row per match flagged as a loop closure (the evaluation tells loop closures from
+#: re-recognitions, evaluation/closures.py): the matched frame opened the matched interval (or
+#: created the matched template); true_distance_m between the true positions of the two frames (empty without ground
 #: truth); score and second_score are the front end's best and runner-up scores (D: overlaps;
 #: the oracle: distances in metres; empty where the front end has no runner-up) and margin their
 #: difference, how much the winner beat the runner-up (|score - second_score|: the best score is
-#: the front end's best by definition, whichever way its scores run)
-CLOSURES_HEADER = "frame,stamp,template_id,matched_frame,true_distance_m,score,second_score,margin\n"
+#: the front end's best by definition, whichever way its scores run); confidence what the decision
+#: was sure of, higher is surer (records.Template.confidence; empty where the front end gave none)
+CLOSURES_HEADER = "frame,stamp,template_id,matched_frame,true_distance_m,score,second_score,margin,confidence\n"
 
 
 class TemplateRow(NamedTuple):
@@ -47,7 +49,8 @@ class PoseRow(NamedTuple):
 
 
 class ClosureRow(NamedTuple):
-    """One row of closures.csv (see :data:`CLOSURES_HEADER`); distance and runner-up may be None."""
+    """One row of closures.csv (see :data:`CLOSURES_HEADER`); distance, runner-up and confidence
+    may be None."""
 
     frame: int
     stamp: float
@@ -56,6 +59,7 @@ class ClosureRow(NamedTuple):
     true_distance_m: float | None
     score: Any
     second_score: Any
+    confidence: float | None = None
 
 
 class WaitingClosure(NamedTuple):
@@ -68,6 +72,7 @@ class WaitingClosure(NamedTuple):
     true_xy: tuple[float, float] | None
     score: Any
     second_score: Any
+    confidence: float | None = None
 
 
 def template_line(r: TemplateRow) -> str:
@@ -92,7 +97,8 @@ def closure_line(r: ClosureRow) -> str:
     margin = None if r.second_score is None or r.score is None else abs(float(r.score) - float(r.second_score))
     dist = "" if r.true_distance_m is None else f"{r.true_distance_m:.3f}"
     return (f"{r.frame},{r.stamp:.6f},{r.template_id},{r.matched_frame},{dist},"
-            f"{_num(r.score)},{_num(r.second_score)},{'' if margin is None else _num(margin)}\n")
+            f"{_num(r.score)},{_num(r.second_score)},{'' if margin is None else _num(margin)},"
+            f"{_num(r.confidence)}\n")
 
 
 @dataclass(frozen=True)

@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -190,6 +191,8 @@ class FinalTracker:
     lock: threading.Lock = field(default_factory=threading.Lock)
     #: a refused message was logged (once: a stream of them must not flood the log)
     refusal_logged: bool = False
+    #: called with each new frame and its trace, in arrival order (the monitor's ``--trace`` writer)
+    on_frame: Callable[[int, list], None] | None = None
 
     def on_sample(self, sample: Any) -> None:
         now = time.time()
@@ -213,4 +216,6 @@ class FinalTracker:
             self.arrivals.append(now)
             if trace:
                 self.latencies.append(now - trace[0][1])
+            if self.on_frame is not None:
+                self.on_frame(frame, trace)
 

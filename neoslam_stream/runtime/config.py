@@ -137,6 +137,9 @@ class RunSection(Strict):
     run_id: str | None = Field(None, pattern=r"^[A-Za-z0-9_-]{1,64}$")
     #: a split run: another host silent this long (seconds) is gone, and this host ends its share
     host_timeout: float = Field(30.0, gt=0)
+    #: a file to write every frame's path through the stages to, as a Chrome / Perfetto trace
+    #: (runtime/trace.py; docs/performance.md); None: no trace
+    trace: str | None = None
 
 
     @field_validator("nice")

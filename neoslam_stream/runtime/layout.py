@@ -10,6 +10,7 @@ strict order. The specs built here are plain data that cross a ``spawn``.
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Any
 
@@ -58,6 +59,9 @@ class RunLayout:
         self.resume_cut = resume_cut
         self.lossless = cfg.run.mode == "lossless"
         self.groups = group_workers(plan, cfg.run.topology)
+        #: the run's start (the zero of its trace) and ``run.trace``'s file, absolute ("": none)
+        self.t_start = time.time()
+        self.trace_path = str(Path(cfg.run.trace).resolve()) if cfg.run.trace else ""
         #: the workers started here (all but where other hosts run some), and whether this host
         #: runs the monitor (the primary: the host with the last stage) and the source
         self.hosted: list[str] = list(self.groups)
@@ -162,7 +166,8 @@ class RunLayout:
         return MonitorSpec(run=self.run_id, run_dir=str(self.run_dir), final_topic=self.plan.final_topic,
                            entry_stages=self.plan.entry_stages, workers=self.workers(), meta=self.meta(),
                            listen=listen, connect=connect, shm=self.cfg.bus.shm, live=self.cfg.run.live,
-                           control_token=self.control_token, topics=list(self.plan.topics))
+                           control_token=self.control_token, topics=list(self.plan.topics),
+                           trace=self.trace_path, started=self.t_start)
 
     def scheduling(self, name: str) -> dict[str, Any]:
         """run.nice and run.cpus of process ``name`` (a worker, "source" or "monitor"): its own key,

@@ -2,8 +2,9 @@
 
 During a run it shows a live ``rich`` table, appends a row per stage to ``timeline.csv`` every
 second and a line to ``stats.jsonl`` every few seconds, and at the end writes ``report.json``
-(report.py) once every stage sent its final stats. ``neoslam monitor`` attaches the same table to
-a running pipeline. What it collects: collector.py; the figures: report.py.
+(report.py) once every stage sent its final stats; with ``--trace FILE`` it streams every frame's
+path through the stages to FILE (trace.py). ``neoslam monitor`` attaches the same table to a
+running pipeline. What it collects: collector.py; the figures: report.py.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from .bus import key_for, open_session
 from .collector import FinalTracker, StatsCollector
 from .messages import Topic, register_topics
 from .report import _json_default, build_report, write_report
+from .trace import TraceWriter
 
 
 def stats_table(stats: dict[str, dict[str, Any]], title: str = "neoslam") -> Any:
@@ -96,6 +98,10 @@ class MonitorSpec:
     control_token: str = ""
     #: the message types of the run with their schemas (the plan's): the final topic's among them
     topics: list[Topic] = field(default_factory=list)
+    #: ``--trace FILE``: every frame's path through the stages as a Chrome / Perfetto trace (trace.py)
+    trace: str = ""
+    #: the run's start (s, epoch): the trace's zero
+    started: float = 0.0
 
 
 def write_timeline_row(writer: Any, t0: float, stats: dict[str, dict[str, Any]]) -> None:
@@ -139,6 +145,9 @@ def run_monitor(spec: MonitorSpec) -> None:
     session = open_session(spec.listen, spec.connect, spec.shm)
     collector = StatsCollector()
     final = FinalTracker(entry_stages=set(spec.entry_stages))
+    trace = TraceWriter(spec.trace, spec.workers, spec.started) if spec.trace else None
+    if trace is not None:
+        final.on_frame = trace.add
     subs = [session.declare_subscriber(key_for(spec.run, "stats/**"), collector.on_sample),
             session.declare_subscriber(key_for(spec.run, spec.final_topic), final.on_sample)]
 
@@ -181,6 +190,9 @@ def run_monitor(spec: MonitorSpec) -> None:
                 jfh.flush()
             if live is not None:
                 live.update(stats_table(snap, f"neoslam run {spec.run}"))
+            if trace is not None:
+                with final.lock:
+                    trace.flush()
         # wait for every stage's final stats (sent after its flush)
         expected = [n for names in spec.workers.values() for n in names]
         deadline = time.monotonic() + spec.final_wait_s
@@ -194,6 +206,10 @@ def run_monitor(spec: MonitorSpec) -> None:
     if live is not None:
         live.update(stats_table(snap, f"neoslam run {spec.run}"))
         live.stop()
+    if trace is not None:
+        with final.lock:
+            final.on_frame = None
+            trace.close()
     report = build_report(snap, final, spec.workers, spec.meta)
     report["control_refused_monitor"] = gate.refused
     write_report(run_dir / "report.json", report)

@@ -151,6 +151,8 @@ class Supervisor:
                                                     self.final.on_sample)
         for name in ("timeline.csv", "stats.jsonl"):  # the monitor appends (it may be restarted)
             (self.run_dir / name).unlink(missing_ok=True)
+        if layout.trace_path and layout.is_primary:  # so is the trace (run.trace)
+            Path(layout.trace_path).unlink(missing_ok=True)
         interrupted = False
         self.failure = None
         try:

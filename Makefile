@@ -38,6 +38,7 @@ bench: setup
 	$(BIN)/python bench/tm.py
 	$(BIN)/python bench/ratslam.py
 	$(BIN)/python bench/e2e.py
+	$(BIN)/python bench/stages.py
 	$(BIN)/neoslam bench emulate --no-live --out bench/results/emulate
 	$(BIN)/neoslam bench throughput --backbone random_alexnet --rates 10,13,20,30,35,40,45,60 --duration 30 --topology both --out bench/results/throughput
 	$(BIN)/neoslam bench throughput --backbone random_alexnet --rates 30 --duration 300 --topology pipeline --out bench/results/throughput

@@ -1,7 +1,9 @@
 """Where the benches find their inputs: the data sets and the settings files in bench/settings/.
 
 The data sets are not shipped: they lie in ``$NEOSLAM_DATA`` or, in a clone of the repository, in
-``../shared/data`` next to it (that folder's README gives sources and licences). A settings file
+``../shared/data`` next to it (that folder's README gives sources and licences); public sets a user
+downloads (Gardens Point Walking) in ``$NEOSLAM_DATASETS`` or ``~/.cache/neoslam_stream/datasets``,
+each with a SOURCE.md that gives its source and licence. A settings file
 holds sections of a run's config (``spatial_view``, ``pose_cells`` ...), validated by the run
 config's models so that a misspelt key fails, plus a ``protocol`` section for what the bench's
 protocol decides itself (thresholds, what it resolves from the data).
@@ -34,6 +36,13 @@ def data_root() -> Path:
     if env:
         return Path(env)
     return Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+def datasets_cache() -> Path:
+    """``$NEOSLAM_DATASETS``, else ``~/.cache/neoslam_stream/datasets``: downloaded public data sets,
+    one folder each (never copied into the repository)."""
+    env = os.environ.get("NEOSLAM_DATASETS")
+    return Path(env) if env else Path.home() / ".cache" / "neoslam_stream" / "datasets"
 
 
 def check_sections(sections: dict[str, Any], origin: str) -> dict[str, Any]:

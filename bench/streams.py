@@ -3,10 +3,13 @@
 A stream knows its frames (re-read or re-rendered on demand), its stamps, the physical quantities
 a user of that robot would state (``platform``), A's features (computed once, cached) and its
 ground truth. ``score`` turns the (frame, matched frame) pairs of a run's loop closures into
-precision and recall: Nordland (summer then winter) counts a winter closure correct when it lands
-within the protocol's tolerance of the same place in summer, recall over the winter frames; the
-synthetic worlds count a closure correct when the matched frame was within 1 m, recall over the
-frames that revisit a place seen at least 5 m of travel earlier (onto such a place).
+precision and recall: a two-traversal stream (Nordland summer then winter, Gardens Point's
+reference walk then its query walk) counts a closure of the second traversal correct when it lands
+within the protocol's tolerance of the same place in the first, recall over the second traversal's
+frames that have a place there; the synthetic worlds count a closure correct when the matched frame
+was within 1 m, recall over the frames that revisit a place seen at least 5 m of travel earlier (onto
+such a place). ``recognition_truth`` gives bench/stages.py each query's candidates and which of them
+are right. A stream whose data is absent raises :class:`MissingData` with a one-line reason.
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from bench_settings import load_settings
+from bench_settings import datasets_cache, load_settings
 
 from neoslam_stream.algorithms.frontend import FrontEnd
 from neoslam_stream.config import load_config
@@ -27,6 +30,11 @@ REVISIT_TRAVEL_M = 5.0
 #: frames 800-2400 of each pass of the default's looped synthetic route: the stretch every pass
 #: revisits (the closures per pass of bench/soak.py and studies/passes.py)
 STRETCH = (800, 2400)
+IMAGES = (".jpg", ".jpeg", ".png", ".bmp")
+
+
+class MissingData(RuntimeError):
+    """A stream's data set is not on this machine (the message says where it was looked for)."""
 
 
 @dataclass
@@ -70,18 +78,42 @@ class Stream:
         return self.frames()
 
     def score(self, pairs: list[tuple[int, int]]) -> dict[str, Any]:
-        if self.truth["kind"] == "nordland":
-            return _score_nordland(pairs, self.truth)
+        if self.truth["kind"] == "traversals":
+            return _score_traversals(pairs, self.truth)
         return _score_world(pairs, self.truth)
 
+    def recognition_truth(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(queries, candidates, allowed, right): the frames that query and the frames they may
+        match (stream indices), and per query and candidate whether it may be matched and whether
+        that match is right. Two traversals: the second's frames against the first's, right within
+        the tolerance; one route: every frame against those at least REVISIT_TRAVEL_M of travel
+        earlier, right within RADIUS_M with the same facing (a query with a right candidate is a
+        revisit)."""
+        tr = self.truth
+        if tr["kind"] == "traversals":
+            n = tr["n"]
+            queries, candidates = np.arange(n, len(self.stamps)), np.arange(n)
+            q_ids = np.asarray(tr["query_ids"])[:, None]
+            right = (q_ids >= 0) & (np.abs(np.asarray(tr["ref_ids"])[None, :] - q_ids) <= tr["tolerance"])
+            return queries, candidates, np.ones_like(right), right
+        gt, path = tr["gt"], tr["path"]
+        idx = np.arange(len(gt))
+        allowed = path[None, :] <= path[:, None] - REVISIT_TRAVEL_M
+        d = np.hypot(gt[:, None, 0] - gt[None, :, 0], gt[:, None, 1] - gt[None, :, 1])
+        dh = np.abs(np.angle(np.exp(1j * (gt[:, None, 2] - gt[None, :, 2]))))
+        return idx, idx, allowed, allowed & (d <= RADIUS_M) & (dh < 0.8)
 
-def _score_nordland(pairs: list[tuple[int, int]], tr: dict[str, Any]) -> dict[str, Any]:
-    n, ids, tol = tr["n"], tr["ids"], tr["tolerance"]
-    winter = [(t, m) for t, m in pairs if t >= n]
-    correct = sum(1 for t, m in winter if m < n and abs(ids[m] - ids[t - n]) <= tol)
-    return {"closures": len(winter), "correct": correct,
-            "precision": correct / len(winter) if winter else None, "recall": correct / (len(ids)),
-            "first_traversal_closures": len(pairs) - len(winter)}
+
+def _score_traversals(pairs: list[tuple[int, int]], tr: dict[str, Any]) -> dict[str, Any]:
+    """Closures of the second traversal (frames n on): right when the matched frame is a frame of the
+    first whose place is within the tolerance of the query's; recall over the queries with a place."""
+    n, ref, qry, tol = tr["n"], tr["ref_ids"], tr["query_ids"], tr["tolerance"]
+    second = [(t, m) for t, m in pairs if t >= n]
+    correct = sum(1 for t, m in second if m < n and qry[t - n] >= 0 and abs(ref[m] - qry[t - n]) <= tol)
+    positives = sum(1 for q in qry if q >= 0)
+    return {"closures": len(second), "correct": correct,
+            "precision": correct / len(second) if second else None, "recall": correct / positives,
+            "first_traversal_closures": len(pairs) - len(second)}
 
 
 def _score_world(pairs: list[tuple[int, int]], tr: dict[str, Any]) -> dict[str, Any]:
@@ -117,8 +149,48 @@ def nordland_stream(offset: int, cache: Path) -> Stream:
     summer, winter, ids = load_frames(p["step"], None, p["min_std"], offset)
     frames = summer + winter
     stamps = np.arange(len(frames), dtype=np.float64) * p["frame_s"]
-    truth = {"kind": "nordland", "n": len(summer), "ids": ids, "tolerance": p["tolerance"]}
+    truth = {"kind": "traversals", "n": len(summer), "ref_ids": ids, "query_ids": ids, "tolerance": p["tolerance"]}
     return Stream(f"nordland{offset}", stamps, s["platform"], lambda: iter(frames), cache, truth)
+
+
+def traversals_stream(settings: str, pair: str, half: str, cache: Path) -> Stream:
+    """Two walks of one route, the reference streamed first, then the query (bench/settings/
+    ``settings``.yaml: the data set's folder under :func:`bench_settings.datasets_cache`, which
+    traversals each ``pair`` names and which frames each ``half`` takes), without stamps (frame
+    numbers) and with the platform a user would state. The images are read in sorted order from
+    ``<cache>/<set>/<traversal>/``; ``gt.json`` says they are frame-aligned (``aligned``: frame i of
+    one walk is frame i's place in the other) or gives ``pairs`` [query frame, reference frame], and
+    the ``tolerance_frames``. Raises :class:`MissingData` when the folder is absent."""
+    import json
+
+    import cv2
+
+    s = load_settings(settings)
+    p = s["protocol"]
+    root = datasets_cache() / p["set"]
+    ref_name, query_name = p["pairs"][pair]
+    lo, hi = p["halves"][half]
+    folders = [root / ref_name, root / query_name]
+    if not (root / "gt.json").exists() or not all(f.is_dir() for f in folders):
+        raise MissingData(f"{p['set']} not found in {root} (set $NEOSLAM_DATASETS; bench/settings/{settings}.yaml "
+                          "says what it is)")
+    gt = json.loads((root / "gt.json").read_text())
+    files = [sorted(f for f in d.iterdir() if f.suffix.lower() in IMAGES)[lo:hi] for d in folders]
+    ref_ids = np.arange(lo, lo + len(files[0]))
+    if gt.get("aligned"):
+        query_ids = np.arange(lo, lo + len(files[1]))
+    else:  # [query frame, reference frame] pairs, numbered in the whole walks
+        pairs = dict((int(q), int(r)) for q, r in gt["pairs"])
+        query_ids = np.array([pairs.get(i, -1) for i in range(lo, lo + len(files[1]))])
+    paths = files[0] + files[1]
+
+    def frames() -> Iterator[np.ndarray]:
+        return (cv2.imread(str(f))[:, :, ::-1].copy() for f in paths)
+
+    truth = {"kind": "traversals", "n": len(files[0]), "ref_ids": ref_ids, "query_ids": query_ids,
+             "tolerance": int(gt.get("tolerance_frames", p["tolerance"]))}
+    return Stream(f"{settings}_{pair}_{half}", np.arange(len(paths), dtype=np.float64), s["platform"], frames,
+                  cache, truth)
 
 
 def _synthetic(name: str, params: dict[str, Any], stamps_from_source: bool, cache: Path) -> Stream:

@@ -135,6 +135,9 @@ class RunCalibration:
         self.pending: list[tuple[int, int, int]] = []
         #: how far each frame's best match stood out, per representation (:meth:`note_distinctness`)
         self.distinctness: dict[str, Distinctness] = {}
+        #: the evidence the last :meth:`accept` decided on: the mean confidence over the stretch
+        #: (>= 0 is a closure); -inf when it had no candidate or inconsistent references
+        self.evidence = -math.inf
 
     # ---------------------------------------------------------------- time
     def on_stamp(self, stamp: float) -> None:
@@ -192,8 +195,9 @@ class RunCalibration:
         """Frame t's best candidate (``ref``: the first frame of the place it matched, i.e. of its
         template, so that equivalent visits of one place agree; -1 for none) with its confidence:
         a closure when the L frames before t had consistent references and the mean confidence
-        of the L + 1 is >= 0. Call once per frame, in frame order."""
+        of the L + 1 is >= 0 (that mean is kept as ``evidence``). Call once per frame, in frame order."""
         n = self.sequence_frames
+        self.evidence = -math.inf
         if self.history.maxlen != max(n, 1):
             self.history = deque(self.history, maxlen=max(n, 1))
         ok = ref >= 0
@@ -204,9 +208,11 @@ class RunCalibration:
                 total = confidence
                 for i in range(1, n + 1):
                     total += conf[t - i]
-                ok = total / (n + 1) >= 0
-        else:
-            ok = ok and confidence >= 0
+                self.evidence = total / (n + 1)
+                ok = self.evidence >= 0
+        elif ok:
+            self.evidence = confidence
+            ok = confidence >= 0
         self.history.append((t, ref, confidence if ref >= 0 else -math.inf))
         if ok:
             self.closures += 1

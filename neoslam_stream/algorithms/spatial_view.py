@@ -364,6 +364,8 @@ class SpatialViewCells:
     def warm_up(self) -> None:
         """Compile (or load from numba's cache) the index's kernels now, not on a live frame."""
         self.index.warm_up()
+        if self.config.rerank:
+            self.descriptors.warm_up()
 
     # ---------------------------------------------------------------- state
     def state_dict(self) -> dict[str, Any]:

@@ -63,20 +63,24 @@ from neoslam_stream.evaluation.recognition import (  # noqa: E402
     figures,
     overlaps,
     ranking_curve,
+    shortlisted,
 )
 
 RESULTS = Path(__file__).resolve().parent / "results"
 STAGES = ("A", "B", "C", "D", "local_view_templates", "local_view")
-#: a diagnostic beside the stages: A's features centred as B centres them (each frame less B's running
+#: diagnostics beside the stages: A's features centred as B centres them (each frame less B's running
 #: mean at its own time, ``projector.centre_window``), by cosine: B's input before its projection and
 #: sLSBH, so that A_as_B -> B is what the projection and binarisation lose, A -> A_as_B what the
-#: centring changes
-DIAGNOSTICS = ("A_as_B",)
-LABELS = {"A": "A features (centred cosine)", "A_as_B": "A centred as B centres (cosine)", "B": "B bits (overlap)",
-          "C": "C winner cells (overlap)",
+#: centring changes; and B's bits and C's cells alone, where B and C give descriptors that re-rank
+#: the bits' (cells') shortlist (``spatial_view.rerank``)
+DIAGNOSTICS = ("A_as_B", "B_bits", "C_cells")
+LABELS = {"A": "A features (centred cosine)", "A_as_B": "A centred as B centres (cosine)",
+          "B": "B (bits shortlist, descriptor re-rank)", "C": "C (cells shortlist, descriptor re-rank)",
+          "B_bits": "B bits alone (overlap)", "C_cells": "C cells alone (overlap)",
           "D": "D decisions", "local_view_templates": "local view templates (error)",
           "local_view": "local view decisions"}
 COLOURS = {"A": "tab:blue", "A_as_B": "tab:cyan", "B": "tab:orange", "C": "tab:green", "D": "tab:red",
+           "B_bits": "tab:brown", "C_cells": "tab:olive",
            "local_view_templates": "tab:grey", "local_view": "black"}
 
 
@@ -138,17 +142,19 @@ def run_part(part: str) -> dict[str, Any]:
     times["A_features"] = time.perf_counter() - t0
 
     t = time.perf_counter()
-    bits = [b for k in range(0, len(feats), 8) for b in fe.bits(feats[k:k + 8])]
+    codes = [c for k in range(0, len(feats), 8) for c in fe.codes(feats[k:k + 8])]
+    bits = [c.bits for c in codes]
     times["B"] = time.perf_counter() - t
     t = time.perf_counter()
-    cells = [fe.cells(b) for b in bits]
+    sdrs = [fe.winner_cells(c) for c in codes]
+    cells = [w.cells for w in sdrs]
     times["C"] = time.perf_counter() - t
     t = time.perf_counter()
     sv = fe.spatial_view
     calibrated = cfg.spatial_view.calibration.enabled
     d_out, d_score = [], []
-    for c, s in zip(cells, stream.stamps, strict=True):
-        o = fe.template(c, s)
+    for w, s in zip(sdrs, stream.stamps, strict=True):
+        o = fe.template_of(w, s)
         d_out.append(o)
         d_score.append(sv.calibration.evidence if calibrated else float(o["best_score"]))
     d_pairs = G.matched_frames(d_out, sv.interval_start)
@@ -172,11 +178,20 @@ def run_part(part: str) -> dict[str, Any]:
     allowed, right = allowed.astype(bool), right.astype(bool)
     res: dict[str, Any] = {"frames": len(stream.stamps), "queries": len(queries),
                            "platform": stream.platform}
+    b_overlaps, c_overlaps = overlaps(bits)[ix], overlaps(cells)[ix]
     curves = {"A": ranking_curve(causal_centred_cosine(feats)[ix], allowed, right),
               "A_as_B": ranking_curve(cosine(FrontEnd(fe.config, resolve=False).projector.centre(feats))[ix],
                                       allowed, right),
-              "B": ranking_curve(overlaps(bits)[ix], allowed, right),
-              "C": ranking_curve(overlaps(cells)[ix], allowed, right)}
+              "B_bits": ranking_curve(b_overlaps, allowed, right),
+              "C_cells": ranking_curve(c_overlaps, allowed, right)}
+    k = cfg.spatial_view.rerank
+    if k and codes[0].descriptor is not None:
+        # B's and C's output: the bits (cells) shortlist k candidates, the descriptors decide (as D does)
+        fine = cosine(np.stack([c.descriptor for c in codes]).astype(np.float64))[ix]
+        curves["B"] = ranking_curve(shortlisted(b_overlaps, fine, allowed, k), allowed, right)
+        curves["C"] = ranking_curve(shortlisted(c_overlaps, fine, allowed, k), allowed, right)
+    else:
+        curves["B"], curves["C"] = curves["B_bits"], curves["C_cells"]
     err = view_errors(np.asarray(templates), queries, candidates, allowed, cfg.local_view)
     curves["local_view_templates"] = ranking_curve(-err, allowed, right)
     qpos = {int(f): i for i, f in enumerate(queries)}

@@ -80,6 +80,12 @@ class Stream:
         feats = self.features(fe.config.features.photometric, fe.config.features.input_size)
         return [fe.cells(b) for k in range(0, len(feats), 8) for b in fe.bits(feats[k:k + 8])]
 
+    def sdrs(self, fe: FrontEnd) -> list[Any]:
+        """C's result of every frame (its cells, and B's descriptor when ``fe`` keeps one) through
+        ``fe``'s B (8 frames a batch, as its node) and C, from A's features as in :meth:`cells`."""
+        feats = self.features(fe.config.features.photometric, fe.config.features.input_size)
+        return [fe.winner_cells(c) for k in range(0, len(feats), 8) for c in fe.codes(feats[k:k + 8])]
+
     def pixels(self) -> Iterator[np.ndarray]:
         return self.frames()
 

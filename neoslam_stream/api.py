@@ -259,7 +259,7 @@ class NeoSLAM(_SLAM):
         for stage in self.chain:
             x = run_stage(self.front_end, stage, x, [stamp])
             out[stage.gives] = x[0]
-        return out[VISUAL_TEMPLATE], FrontEndResult(out[BIN_FEATURES], out[SDR], out[VISUAL_TEMPLATE])
+        return out[VISUAL_TEMPLATE], FrontEndResult(out[BIN_FEATURES].bits, out[SDR].cells, out[VISUAL_TEMPLATE])
 
     def step_cells(self, cells: np.ndarray, odometry: Odometry | None = None, stamp: float | None = None,
                    frame: int | None = None) -> StepResult:

@@ -11,7 +11,7 @@ from neoslam_stream.runtime.messages import Message
 
 def make_stage(**params):
     """Stage C's node with these neocortex parameters."""
-    return make_node("cells", neocortex=params)
+    return make_node("winner_cells", neocortex=params)
 
 
 def _inputs(n, seed=0):

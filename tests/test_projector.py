@@ -13,7 +13,7 @@ from neoslam_stream.runtime.messages import Message
 
 def b_node(**projector):
     """Stage B's node with these projector parameters."""
-    return make_node("bits", projector=projector)
+    return make_node("codes", projector=projector)
 
 
 def test_slsbh_hand_made_vector():
@@ -424,7 +424,7 @@ def test_a_gpu_device_fuses_a_and_b_into_one_node_in_the_plan():
     cfg = load_config("default", overrides={"projector": {"device": "cuda:1"}})
     stages = build_plan(cfg).stages
     assert [s.name for s in stages][:2] == ["A", "C"]
-    assert stages[0].params["call"] == "bits_on_device"
+    assert stages[0].params["call"] == "codes_on_device"
     assert stages[0].params["features"]["device"] == "cuda:1"  # A follows B's device
     cfg = load_config("default", overrides={"projector": {"device": "cuda"}, "features": {"device": "cpu"}})
     with pytest.raises(ValueError, match="share the device"):
@@ -433,7 +433,7 @@ def test_a_gpu_device_fuses_a_and_b_into_one_node_in_the_plan():
 
 def test_fused_node_on_cpu_emits_the_bits_of_a_then_b():
     feats = dict(backbone="random_alexnet", seed=1, device="cpu", frame_stride=2)
-    fused = make_node("bits_on_device", features=feats, projector=dict(input_dim=64896, seed=5))
+    fused = make_node("codes_on_device", features=feats, projector=dict(input_dim=64896, seed=5))
     fused.setup()
     a = make_node("features", features=feats)
     a.setup()

@@ -192,7 +192,7 @@ def test_invalid_sdr_is_rejected():
 def test_node_emits_templates_and_the_recorder_writes_them(tmp_path):
     from neoslam_stream.nodes.recorder import RecorderNode
 
-    st = make_node("template", spatial_view=dict(theta_alpha=3, theta_rho=2, theta_sigma=4,
+    st = make_node("template_of", spatial_view=dict(theta_alpha=3, theta_rho=2, theta_sigma=4,
                                                 exclude_recent_intervals=1, sdr_size=256))
     rec = RecorderNode()
     rec.run_dir = str(tmp_path)

@@ -64,6 +64,33 @@ class CalibrationConfig(BaseModel):
     neighbourhood_m: float = Field(2.0, gt=0)
 
 
+class Distinctness:
+    """How far each frame's best match stood out from the unrelated places (its z), for one kind
+    of representation, as a histogram of 0.1-wide bins from 0 to 20 (bounded memory over any run):
+    what a run can say about how distinct its places were without ground truth."""
+
+    BIN, TOP = 0.1, 20.0
+
+    def __init__(self) -> None:
+        self.counts = np.zeros(int(self.TOP / self.BIN) + 1, np.int64)
+
+    def add(self, z: float) -> None:
+        if math.isfinite(z):
+            self.counts[int(min(max(z, 0.0), self.TOP) / self.BIN)] += 1
+
+    def quantile(self, q: float) -> float | None:
+        n = int(self.counts.sum())
+        if not n:
+            return None
+        return round(float(np.searchsorted(np.cumsum(self.counts), q * n)) * self.BIN, 2)
+
+    def report(self, z_min: float) -> dict[str, Any]:
+        n = int(self.counts.sum())
+        above = int(self.counts[int(min(z_min, self.TOP) / self.BIN):].sum())
+        return {"frames": n, "median_z": self.quantile(0.5), "p90_z": self.quantile(0.9),
+                "share_above_z_min": round(above / n, 4) if n else None}
+
+
 @dataclass
 class Assessment:
     """One frame's verdict on its best candidate: ``confidence`` >= 0 when it stands out."""
@@ -106,6 +133,8 @@ class RunCalibration:
         #: templates on probation: (frame, the caller's key for the template, the key of what its
         #: frame matched), kept for one stretch of evidence (:meth:`on_new_template`)
         self.pending: list[tuple[int, int, int]] = []
+        #: how far each frame's best match stood out, per representation (:meth:`note_distinctness`)
+        self.distinctness: dict[str, Distinctness] = {}
         #: the evidence the last :meth:`accept` decided on: the mean confidence over the stretch
         #: (>= 0 is a closure); -inf when it had no candidate or inconsistent references
         self.evidence = -math.inf
@@ -136,13 +165,16 @@ class RunCalibration:
         return max(1, math.ceil(self.seconds(self.config.sequence_m) / self.frame_s - 1e-9))
 
     # ---------------------------------------------------------------- decisions
-    def assess(self, scores: np.ndarray, times: np.ndarray, recent: float | None) -> Assessment | None:
+    def assess(self, scores: np.ndarray, times: np.ndarray, recent: float | None,
+               best: int | None = None) -> Assessment | None:
         """``scores``: the candidates' similarities (higher: more alike); ``times``: their stamps;
-        ``recent``: the similarity to the view a moment ago (None: unknown). None when too few
+        ``recent``: the similarity to the view a moment ago (None: unknown); ``best``: the winner
+        when another ranking chose it (a re-ranking), else the highest score. None when too few
         candidates lie outside the winner's neighbourhood."""
         if scores.shape[0] == 0:
             return None
-        best = int(np.argmax(scores))
+        if best is None:
+            best = int(np.argmax(scores))
         far = np.abs(times - times[best]) > self.seconds(self.config.neighbourhood_m)
         rest = scores[far]
         if rest.shape[0] < self.config.min_candidates:
@@ -206,6 +238,20 @@ class RunCalibration:
     def frame_done(self) -> None:
         self.frames_assessed += 1
 
+    def note_distinctness(self, name: str, z: float) -> None:
+        """One frame's best match under representation ``name`` stood ``z`` sd above the rest."""
+        self.distinctness.setdefault(name, Distinctness()).add(z)
+
+    def standing_out(self, scores: np.ndarray, times: np.ndarray) -> float:
+        """z of the best of ``scores`` over the candidates outside its neighbourhood (NaN when too few)."""
+        if scores.shape[0] == 0:
+            return math.nan
+        best = int(np.argmax(scores))
+        rest = scores[np.abs(times - times[best]) > self.seconds(self.config.neighbourhood_m)]
+        if rest.shape[0] < self.config.min_candidates:
+            return math.nan
+        return (float(scores[best]) - float(rest.mean())) / (float(rest.std()) + 1e-9)
+
     # ---------------------------------------------------------------- report and state
     def report(self) -> dict[str, Any]:
         """What this run settled on: the unrelated places' level and spread, the score a winner
@@ -222,13 +268,16 @@ class RunCalibration:
             out.update({"unrelated_mean": round(mean, 3), "unrelated_sd": round(sd, 3),
                         "score_needed": round(mean + self.config.z_min * sd, 3)})
         out["revisit_seen"] = self.closures > 0
+        if self.distinctness:
+            out["distinctness"] = {k: d.report(self.config.z_min) for k, d in sorted(self.distinctness.items())}
         return out
 
     def state_dict(self) -> dict[str, Any]:
         return {"history": [[t, m, c] for t, m, c in self.history], "intervals": list(self.intervals),
                 "last_stamp": self.last_stamp, "pending": [list(e) for e in self.pending],
                 "figures": [self.ready_frame, self.frames_assessed, self.sum_mean, self.sum_sd, self.closures,
-                            self.first_closure_frame, self.templates_merged]}
+                            self.first_closure_frame, self.templates_merged],
+                "distinctness": {k: d.counts.copy() for k, d in self.distinctness.items()}}
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
         # the intervals first: the evidence kept (L frames) follows from the interval they measure
@@ -242,3 +291,7 @@ class RunCalibration:
         (self.ready_frame, self.frames_assessed, self.sum_mean, self.sum_sd, self.closures,
          self.first_closure_frame, self.templates_merged) = (int(fig[0]), int(fig[1]), float(fig[2]),
                                                              float(fig[3]), int(fig[4]), int(fig[5]), int(fig[6]))
+        self.distinctness = {}
+        for k, counts in st["distinctness"].items():
+            self.distinctness[k] = Distinctness()
+            self.distinctness[k].counts = np.asarray(counts, dtype=np.int64).copy()

@@ -25,7 +25,7 @@ from .features import FeatureConfig, VisualFeatureExtractor, feature_dim, resolv
 from .neocortex import Neocortex, NeocortexConfig
 from .projector import BinaryProjector, ProjectorConfig, TorchProjection
 from .ratslam.local_view import LocalViewCells, LocalViewConfig
-from .records import Template
+from .records import BinaryCode, Template, WinnerCells
 from .spatial_view import SpatialViewCells, SpatialViewConfig
 from .weights import resolve_device
 
@@ -102,13 +102,22 @@ class FrontEnd:
         """A: HxWx3 uint8 RGB frames -> (n, feature_dim) float32."""
         return self.extractor.extract_batch(rgbs)
 
+    def codes(self, features: np.ndarray) -> list[BinaryCode]:
+        """B: (n, feature_dim) features -> each row's code (its sorted on-bits, and its descriptor
+        when ``projector.descriptor``)."""
+        return self.projector.codes_batch(features)
+
     def bits(self, features: np.ndarray) -> list[np.ndarray]:
         """B: (n, feature_dim) features -> each row's sorted on-bits."""
-        return self.projector.bits_batch(features)
+        return [c.bits for c in self.codes(features)]
+
+    def codes_on_device(self, rgbs: Sequence[np.ndarray]) -> list[BinaryCode]:
+        """A then B in torch on A's device: the features never leave it, only the codes do."""
+        return self.torch_projection.codes_batch(self.extractor.extract_tensor_batch(rgbs))
 
     def bits_on_device(self, rgbs: Sequence[np.ndarray]) -> list[np.ndarray]:
-        """A then B in torch on A's device: the features never leave it, only the bits do."""
-        return self.torch_projection.bits_batch(self.extractor.extract_tensor_batch(rgbs))
+        """A then B in torch on A's device: only the bits come back."""
+        return [c.bits for c in self.codes_on_device(rgbs)]
 
     def bits_of_frames(self, rgbs: Sequence[np.ndarray]) -> list[np.ndarray]:
         """A then B: on the device when ``projector.device`` is not cpu."""
@@ -120,10 +129,20 @@ class FrontEnd:
         """C: one frame's on-bits -> its winner cells (one learning step)."""
         return self.neocortex.compute(bits)
 
-    def template(self, cells: np.ndarray, stamp: float | None = None) -> Template:
-        """D: one frame's winner cells (and its stamp, seconds) -> its visual template."""
-        res = self.spatial_view.compute(cells, stamp)
+    def winner_cells(self, code: BinaryCode) -> WinnerCells:
+        """C on B's code: the winner cells and the step's anomaly, the code's descriptor passed on."""
+        cells = self.cells(code.bits)
+        return WinnerCells(cells, self.neocortex.n_cells, float(self.neocortex.anomaly), code.descriptor)
+
+    def template(self, cells: np.ndarray, stamp: float | None = None, descriptor: np.ndarray | None = None) -> Template:
+        """D: one frame's winner cells (its stamp, seconds, and B's descriptor of it) -> its visual
+        template."""
+        res = self.spatial_view.compute(cells, stamp, descriptor)
         return {k: res[k] for k in Template.__annotations__ if k in res}  # type: ignore[return-value]
+
+    def template_of(self, wc: WinnerCells, stamp: float | None = None) -> Template:
+        """D on C's result."""
+        return self.template(wc.cells, stamp, wc.descriptor)
 
     def warm_up(self, parts: Sequence[str] = ("projector", "neocortex", "spatial_view")) -> None:
         """Build ``parts`` and compile the kernels of B's, C's and D's before the first frame (A's

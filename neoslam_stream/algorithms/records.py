@@ -1,7 +1,8 @@
 """The records the cores hand from one stage to the next, declared once with what their values are.
 
-A stage's result that has named fields is one of these types: D's (or the local view's)
-:class:`Template`, the pose cells' :class:`Action`, the experience map's :class:`MapPose`. Each
+A stage's result that has named fields is one of these types: B's :class:`BinaryCode`, C's
+:class:`WinnerCells`, D's (or the local view's) :class:`Template`, the pose cells' :class:`Action`,
+the experience map's :class:`MapPose`. Each
 field says its type and, with ``Annotated``, what its values always are (:data:`Finite`, an
 :class:`Array`'s dtypes and shape), so that a host that carries the records elsewhere (the topics
 of ``neoslam_stream.nodes``) derives its checks from here instead of writing the fields again.
@@ -35,6 +36,32 @@ class Array:
     ndim: int = 1
     shape: tuple[int | None, ...] | None = None
     finite: bool = False
+
+
+#: the integer dtypes an array of indices (bits, cells) may have
+INDEX_DTYPES = ("uint16", "uint32", "int32", "int64", "uint64")
+
+
+@dataclass
+class BinaryCode:
+    """B's result for one frame: the sorted on-bits of its sLSBH code (``size`` bits in all) and,
+    when B keeps one, its descriptor: the centred features as int8, from which D re-ranks the
+    candidates the bits shortlisted."""
+
+    bits: Annotated[np.ndarray, Array(INDEX_DTYPES)]
+    size: int
+    descriptor: Annotated[np.ndarray | None, Array(("int8",))] = None
+
+
+@dataclass
+class WinnerCells:
+    """C's result for one frame: the Temporal Memory's winner cells (of ``size``), the step's raw
+    anomaly, and B's descriptor of the frame, passed on to D."""
+
+    cells: Annotated[np.ndarray, Array(INDEX_DTYPES)]
+    size: int
+    anomaly: float | None = None
+    descriptor: Annotated[np.ndarray | None, Array(("int8",))] = None
 
 
 class Template(TypedDict):

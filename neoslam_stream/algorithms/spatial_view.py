@@ -28,6 +28,7 @@ from pyroaring import BitMap
 
 from ._config import make_config
 from .calibration import CalibrationConfig, PlatformConfig, RunCalibration
+from .descriptors import IntervalDescriptors
 from .errors import InvalidInput
 from .interval_index import IntervalIndex
 from .sequence import SequenceConfig, SequenceFilter
@@ -63,12 +64,22 @@ class SpatialViewConfig(BaseModel):
     #: only, not with every frame. Needs ``calibration.enabled`` (whose statistics then leave the
     #: revisits out too). True: every interval is a candidate (the paper's rule)
     index_revisits: bool = True
+    #: k > 0: the calibrated decision's k best candidates by their cells are re-ranked by the
+    #: frames' descriptors (B's centred features, ``projector.descriptor``; algorithms/descriptors.py)
+    #: and the most alike wins; its confidence is judged as before. 0: the cells decide (the paper)
+    rerank: int = Field(0, ge=0)
+    #: with ``rerank``: 0 judges the winner by the cells' scores; n > 0 judges it by the
+    #: descriptors' cosines, the unrelated places' level and spread measured on n candidates
+    #: spread evenly over the rest
+    rerank_sample: int = Field(0, ge=0)
 
     @model_validator(mode="after")
     def _pruning_needs_calibration(self) -> SpatialViewConfig:
         if not self.index_revisits and not self.calibration.enabled:
             raise ValueError("index_revisits: false needs calibration.enabled: true (the thresholded "
                              "rules count every interval)")
+        if self.rerank and not self.calibration.enabled:
+            raise ValueError("rerank needs calibration.enabled: true (it re-ranks the calibrated decision's candidates)")
         return self
 
     @field_validator("exclude_recent_intervals")
@@ -118,6 +129,8 @@ class SpatialViewCells:
         self.sequence = SequenceFilter(self.config.sequence)
         seq = self.config.sequence
         self.calibration = RunCalibration(self.config.calibration, self.platform, seq.max_step, seq.slack)
+        #: the indexed intervals' descriptors (``rerank``)
+        self.descriptors = IntervalDescriptors()
 
     @property
     def n_intervals(self) -> int:
@@ -141,11 +154,13 @@ class SpatialViewCells:
             raise InvalidInput(f"SDR indices must lie in [0, {self.config.sdr_size})")
         return np.unique(a.astype(np.int64)).astype(np.int32)
 
-    def compute(self, sdr: np.ndarray, stamp: float | None = None) -> dict[str, Any]:
-        """Process y_t (``stamp``: its time in seconds, default the frame number); returns template
-        id, loop-closure flag, best interval and score, and the runner-up (``second_interval``,
-        ``second_score``: the best candidate other than k*, -1 and 0 when there is none), from
-        which a closure's margin best_score - second_score follows."""
+    def compute(self, sdr: np.ndarray, stamp: float | None = None,
+                descriptor: np.ndarray | None = None) -> dict[str, Any]:
+        """Process y_t (``stamp``: its time in seconds, default the frame number; ``descriptor``:
+        B's int8 descriptor of the frame, for ``rerank``); returns template id, loop-closure flag,
+        best interval and score, and the runner-up (``second_interval``, ``second_score``: the best
+        candidate other than k*, -1 and 0 when there is none), from which a closure's margin
+        best_score - second_score follows."""
         cfg = self.config
         y = self._validate(sdr)
         stamp = float(self.t if stamp is None else stamp)
@@ -167,12 +182,15 @@ class SpatialViewCells:
             if k:
                 self._close_interval(k - 1)
             self.unions.append(y_bm)
+            self.descriptors.open_interval()
             self.interval_start.append(self.t)
             self._stamps = _put(self._stamps, k, stamp)
             self.interval_end.append(self.t)
             self.interval_template.append(-1)
+        if cfg.rerank:
+            self.descriptors.add_frame(descriptor)
         if cfg.calibration.enabled:
-            loop, best, best_score, second, second_score = self._calibrated(y, y_bm, stamp)
+            loop, best, best_score, second, second_score = self._calibrated(y, y_bm, stamp, descriptor)
         else:
             loop, best, best_score, second, second_score = self._thresholded(y)
         if loop:
@@ -214,6 +232,8 @@ class SpatialViewCells:
         cells = np.asarray(self.unions[k].to_array(), dtype=np.int32)
         self.index.post(cells, slot)
         self.index.store_union(slot, cells.astype(np.int64))
+        if self.config.rerank:
+            self.descriptors.close_interval(slot)
         self._indexed = _put(self._indexed, slot, k)
         self._n_indexed += 1
 
@@ -239,9 +259,11 @@ class SpatialViewCells:
             loop = self.sequence.check(self.t, self.interval_start[best] if loop else -1)
         return loop, best, best_score, second, second_score
 
-    def _calibrated(self, y: np.ndarray, y_bm: BitMap, stamp: float) -> tuple[bool, int, float, int, float]:
+    def _calibrated(self, y: np.ndarray, y_bm: BitMap, stamp: float,
+                    descriptor: np.ndarray | None = None) -> tuple[bool, int, float, int, float]:
         """The calibrated decision (algorithms/calibration.py) on the union-normalised scores of
-        the intervals opened at least a shortest loop ago (and outside the omega newest)."""
+        the intervals opened at least a shortest loop ago (and outside the omega newest); with
+        ``rerank``, the winner is the most alike by descriptor among the best ``rerank`` by score."""
         cal = self.calibration
         cal.on_stamp(stamp)
         k_all = self.n_intervals
@@ -252,8 +274,15 @@ class SpatialViewCells:
         if limit > 0:
             slots = int(np.searchsorted(self.indexed, limit))  # the indexed intervals k < limit
             which = self.indexed[:slots]
-            a = cal.assess(self._normalised_scores(y, slots), self.interval_stamp[which],
-                           self._recent_score(y_bm) if k_all >= 2 else None)
+            scores = self._normalised_scores(y, slots)
+            cal.note_distinctness("cells", cal.standing_out(scores, self.interval_stamp[which]))
+            if self.config.rerank_sample and descriptor is not None and self.descriptors.n:
+                a, which = self._assess_descriptors(scores, which, descriptor)
+                if a is not None:
+                    cal.note_distinctness("descriptors", a.z)
+            else:
+                a = cal.assess(scores, self.interval_stamp[which],
+                               self._recent_score(y_bm) if k_all >= 2 else None, self._reranked(scores, descriptor))
             if a is not None:
                 best, best_score = int(which[a.best]), a.score
                 second, second_score = int(which[a.second]), a.second_score
@@ -265,6 +294,38 @@ class SpatialViewCells:
         cal.frame_done()
         self.runner_up = (second, second_score)
         return loop, best, best_score, second, second_score
+
+    def _reranked(self, scores: np.ndarray, descriptor: np.ndarray | None) -> int | None:
+        """With ``rerank`` k: of the k best candidates by score (ties: lowest slot), the one whose
+        descriptor is most alike the frame's; None when off or no descriptor can tell."""
+        k = self.config.rerank
+        if not k or descriptor is None or scores.shape[0] == 0:
+            return None
+        top = np.argsort(-scores, kind="stable")[:k]
+        cos = self.descriptors.cosines(descriptor, top)
+        if np.all(np.isnan(cos)):
+            return None
+        return int(top[np.nanargmax(cos)])
+
+    def _assess_descriptors(self, scores: np.ndarray, which: np.ndarray, descriptor: np.ndarray) -> tuple[Any, np.ndarray]:
+        """The calibrated decision on descriptors: the ``rerank`` best candidates by score and
+        ``rerank_sample`` others spread evenly over the rest, scored by cosine; the winner the most
+        alike of the first, judged against them all."""
+        k, n = self.config.rerank, self.config.rerank_sample
+        order = np.argsort(-scores, kind="stable")
+        top, rest = order[:k], np.sort(order[k:])
+        if rest.shape[0] > n:
+            rest = rest[np.linspace(0, rest.shape[0] - 1, n).astype(np.int64)]
+        cand = np.concatenate([top, rest])
+        cos = self.descriptors.cosines(descriptor, cand)
+        ok = ~np.isnan(cos)
+        cand, cos = cand[ok], cos[ok]
+        if not np.any(ok[:top.shape[0]]):
+            return None, which
+        best = int(np.argmax(np.where(np.arange(cand.shape[0]) < int(ok[:top.shape[0]].sum()), cos, -np.inf)))
+        a = self.calibration.assess(cos, self.interval_stamp[which[cand]], self.descriptors.previous_cosine(descriptor),
+                                    best)
+        return a, which[cand]
 
     def _confirm_duplicates(self, loop: bool, made_template: bool, best: int) -> None:
         """A closure is accepted only after evidence over ``sequence_m`` of travel, so the first
@@ -307,6 +368,8 @@ class SpatialViewCells:
     def warm_up(self) -> None:
         """Compile (or load from numba's cache) the index's kernels now, not on a live frame."""
         self.index.warm_up()
+        if self.config.rerank:
+            self.descriptors.warm_up()
 
     # ---------------------------------------------------------------- state
     def state_dict(self) -> dict[str, Any]:
@@ -319,7 +382,7 @@ class SpatialViewCells:
                 "current_template": self.current_template, "t": self.t,
                 "sequence": self.sequence.state_dict(), "stamps": self.interval_stamp.copy(),
                 "calibration": self.calibration.state_dict(), "indexed": self.indexed.copy(),
-                "all_closed": self._all_closed}
+                "all_closed": self._all_closed, "descriptors": self.descriptors.state_dict()}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore a :meth:`state_dict`; a state made with other parameters (``params``) is
@@ -358,6 +421,7 @@ class SpatialViewCells:
         self.t = int(state["t"])
         self.sequence.load_state_dict(state["sequence"])
         self.calibration.load_state_dict(state["calibration"])
+        self.descriptors.load_state_dict(state["descriptors"])
 
 
 def _put(store: np.ndarray, k: int, value: Any) -> np.ndarray:

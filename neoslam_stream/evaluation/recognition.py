@@ -136,6 +136,18 @@ def figures(curve: PRCurve, precisions: Sequence[float] = PRECISIONS, points: in
             "positives": curve.positives, "curve": downsample(curve, points)}
 
 
+def shortlisted(coarse: np.ndarray, fine: np.ndarray, allowed: np.ndarray, k: int) -> np.ndarray:
+    """Two-stage retrieval: of each query's allowed candidates, the ``k`` best by ``coarse`` (ties:
+    the lower column) keep their ``fine`` score, every other candidate -inf (never the best)."""
+    c = np.where(np.asarray(allowed, bool), np.asarray(coarse, dtype=np.float64), -np.inf)
+    top = np.argsort(-c, axis=1, kind="stable")[:, :k]
+    rows = np.arange(c.shape[0])[:, None]
+    out = np.full(c.shape, -np.inf)
+    keep = np.isfinite(c[rows, top])
+    out[rows, top] = np.where(keep, np.asarray(fine, dtype=np.float64)[rows, top], -np.inf)
+    return out
+
+
 def ranking_curve(scores: np.ndarray, allowed: np.ndarray, right: np.ndarray) -> PRCurve:
     """The curve of each query's best match: ``scores``, ``allowed``, ``right`` are (queries,
     candidates)."""

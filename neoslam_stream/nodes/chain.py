@@ -39,14 +39,15 @@ class ChainStage:
 #: A: camera frames -> CNN features
 A = ChainStage("A", IMAGE, VISUAL_FEATURES, "features", ("features",), ("extractor",), batched=True)
 #: B: features -> sLSBH bits (512 of 2048)
-B = ChainStage("B", VISUAL_FEATURES, BIN_FEATURES, "bits", ("projector",), ("projector",), batched=True)
+B = ChainStage("B", VISUAL_FEATURES, BIN_FEATURES, "codes", ("projector",), ("projector",), batched=True)
 #: A and B in one stage on a torch device, so that only bits leave it
-A_WITH_B = ChainStage("A", IMAGE, BIN_FEATURES, "bits_on_device", ("features", "projector"),
+A_WITH_B = ChainStage("A", IMAGE, BIN_FEATURES, "codes_on_device", ("features", "projector"),
                       ("extractor", "torch_projection"), batched=True)
 #: C: bits -> the Temporal Memory's winner cells (one learning step per frame)
-C = ChainStage("C", BIN_FEATURES, SDR, "cells", ("neocortex",), ("neocortex",))
+C = ChainStage("C", BIN_FEATURES, SDR, "winner_cells", ("neocortex",), ("neocortex",))
 #: D: winner cells -> visual template, loop closure
-D = ChainStage("D", SDR, VISUAL_TEMPLATE, "template", ("spatial_view", "platform"), ("spatial_view",), stamped=True)
+D = ChainStage("D", SDR, VISUAL_TEMPLATE, "template_of", ("spatial_view", "platform"), ("spatial_view",),
+               stamped=True)
 
 
 def neoslam_chain(config: FrontEndConfig) -> tuple[ChainStage, ...]:

@@ -17,12 +17,12 @@ import numpy as np
 
 from ..algorithms.errors import InvalidInput
 from ..algorithms.frontend import FrontEnd, FrontEndConfig
-from ..algorithms.projector import N_BITS
+from ..algorithms.records import BinaryCode, WinnerCells
 from ..runtime.messages import Message
 from ..runtime.node import Node, Output
 from .camera import decode_rgb
 from .chain import A_WITH_B, A, B, C, ChainStage, D, run_stage
-from .topics import IMAGE
+from .topics import IMAGE, record_data, record_of
 
 
 class FrontEndNode(Node):
@@ -95,7 +95,8 @@ class FeatureNode(FrontEndNode):
 
 
 class ProjectorNode(FrontEndNode):
-    """B: ``visual_features`` -> ``bin_features`` (sorted uint16 indices of 2048 bits)."""
+    """B: ``visual_features`` -> ``bin_features`` (sorted uint16 indices of 2048 bits, and the
+    frame's int8 descriptor when B keeps one)."""
 
     stage = B
 
@@ -120,8 +121,8 @@ class ProjectorNode(FrontEndNode):
             feats.append(f)
         return np.stack(feats)
 
-    def give(self, result: np.ndarray) -> dict[str, Any]:
-        return {"bits": result, "size": N_BITS}
+    def give(self, result: BinaryCode) -> dict[str, Any]:
+        return record_data(result)
 
     def info(self) -> dict[str, Any]:
         p = self.core.config.projector
@@ -146,20 +147,20 @@ class FusedFeatureNode(FeatureNode):
 
 
 class NeocortexNode(FrontEndNode):
-    """C: ``bin_features`` -> ``sdr`` (winner cells of 65536, and the step's raw anomaly)."""
+    """C: ``bin_features`` -> ``sdr`` (winner cells of 65536, the step's raw anomaly, and B's
+    descriptor passed on)."""
 
     stage = C
 
-    def take(self, msgs: Sequence[Message]) -> list[np.ndarray]:
+    def take(self, msgs: Sequence[Message]) -> list[BinaryCode]:
         columns = self.core.config.neocortex.columns
         for m in msgs:
             if int(m["size"]) != columns:
                 raise InvalidInput(f"bin_features of size {m['size']}, the neocortex has {columns} columns")
-        return [m["bits"] for m in msgs]
+        return [record_of(BinaryCode, m.data) for m in msgs]
 
-    def give(self, result: np.ndarray) -> dict[str, Any]:
-        n = self.core.neocortex
-        return {"cells": result, "size": n.n_cells, "anomaly": float(n.anomaly)}
+    def give(self, result: WinnerCells) -> dict[str, Any]:
+        return record_data(result)
 
     def info(self) -> dict[str, Any]:
         n = self.core.neocortex
@@ -178,8 +179,8 @@ class SpatialViewNode(FrontEndNode):
         super().__init__(**sections)
         self.loops = 0
 
-    def take(self, msgs: Sequence[Message]) -> list[np.ndarray]:
-        return [m["cells"] for m in msgs]
+    def take(self, msgs: Sequence[Message]) -> list[WinnerCells]:
+        return [record_of(WinnerCells, m.data) for m in msgs]
 
     def give(self, result: dict[str, Any]) -> dict[str, Any]:
         self.loops += bool(result["is_loop_closure"])

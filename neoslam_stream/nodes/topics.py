@@ -20,14 +20,13 @@ from typing import Annotated, Any, Union, get_args, get_origin
 import numpy as np
 from typing_extensions import NotRequired, get_type_hints, is_typeddict
 
-from ..algorithms.records import Action, Array, Finite, MapPose, Template
+from ..algorithms.records import Action, Array, BinaryCode, Finite, MapPose, Template, WinnerCells
 from ..runtime.messages import CONTROL, GROUNDTRUTH, IMAGE, ODOM, Field, Topic
 
 __all__ = ["ALGORITHM_TOPICS", "BIN_FEATURES", "CONTROL", "EXPERIENCE_MAP", "EXPERIENCE_POSE", "GROUNDTRUTH",
            "IMAGE", "ODOM", "POSE_CELL_ACTION", "SDR", "VISUAL_FEATURES", "VISUAL_TEMPLATE", "record_data",
            "record_of", "topic_of"]
 
-_IDX = ("uint16", "uint32", "int32", "int64", "uint64")
 _KINDS = {int: "int", float: "float", bool: "bool", str: "str", dict: "map"}
 
 
@@ -75,11 +74,12 @@ VISUAL_FEATURES = Topic("visual_features", {
     "features": Field("array", ("float32",), (1,), finite=True),
     "backbone": Field("str", optional=True),
 })
-#: B's output: sorted indices of the on-bits of the sLSBH code (``size`` bits in all)
-BIN_FEATURES = Topic("bin_features", {"bits": Field("array", _IDX, (1,)), "size": Field("int")})
-#: C's output: the winner cells of the Temporal Memory, and its raw anomaly
-SDR = Topic("sdr", {"cells": Field("array", _IDX, (1,)), "size": Field("int"),
-                    "anomaly": Field("float", optional=True)})
+#: B's output: sorted indices of the on-bits of the sLSBH code (``size`` bits in all), and the
+#: frame's descriptor (:class:`~neoslam_stream.algorithms.records.BinaryCode`)
+BIN_FEATURES = topic_of("bin_features", BinaryCode)
+#: C's output: the winner cells of the Temporal Memory, its raw anomaly, B's descriptor passed on
+#: (:class:`~neoslam_stream.algorithms.records.WinnerCells`)
+SDR = topic_of("sdr", WinnerCells)
 #: D's (or RatSLAM's local-view cells', or the oracle's) output: the visual template of the frame
 VISUAL_TEMPLATE = topic_of("visual_template", Template)
 #: The pose cells' output, one per odometry sample: the action for the experience map with the

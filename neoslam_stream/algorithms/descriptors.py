@@ -1,0 +1,120 @@
+"""The descriptors of D's intervals: the finer copy of a place that re-ranks what the bits shortlisted.
+
+B keeps each frame's centred features as int8 (``projector.descriptor``; ``BinaryCode``). A binary
+code of 512 bits ranks places that differ a little (a corridor, a night scene) worse than the
+features it came from: the projection and the binarisation each add noise as large as the gap
+between the right place and the next best. So D shortlists its candidates by their cells, as the
+paper does, and re-ranks the shortlist by the cosine of these descriptors (the usual two-stage
+retrieval: binary codes to shortlist, a finer descriptor to decide). An interval's descriptor is
+the mean of its frames' unit descriptors, kept as int8 with its norm; one row per indexed interval.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, nogil=True)
+def _int8_dots(rows: np.ndarray, slots: np.ndarray, q: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover
+    """out[i] = rows[slots[i]] . q, summed exactly in int32 (no float copy of the rows; |sum| <=
+    127^2 n < 2^31 for n < 133 000)."""
+    for i in range(slots.shape[0]):
+        r = rows[slots[i]]
+        acc = np.int32(0)
+        for j in range(q.shape[0]):
+            acc += np.int32(r[j]) * np.int32(q[j])
+        out[i] = acc
+
+
+def _as_int8(v: np.ndarray) -> np.ndarray:
+    peak = float(np.abs(v).max()) if v.size else 0.0
+    return np.zeros(v.shape, np.int8) if peak == 0.0 else np.rint(v * (127.0 / peak)).astype(np.int8)
+
+
+class IntervalDescriptors:
+    """One int8 row per indexed interval (its slot in D's index) and the sum of the open interval's
+    unit descriptors. A frame without a descriptor adds nothing; an interval none of whose frames
+    had one gets a zero row, which :meth:`cosines` reports as missing (NaN)."""
+
+    def __init__(self) -> None:
+        self._rows = np.zeros((0, 0), np.int8)
+        self._norms = np.zeros(0, np.float64)
+        self.n = 0
+        self._sum: np.ndarray | None = None
+        self.previous: np.ndarray | None = None
+
+    def open_interval(self) -> None:
+        """A new interval opens: its frames' descriptors are summed afresh; the one that closed is
+        the view a moment ago (:meth:`previous_cosine`)."""
+        self.previous = None if self._sum is None else self._sum / float(np.linalg.norm(self._sum))
+        self._sum = None
+
+    def previous_cosine(self, descriptor: np.ndarray) -> float | None:
+        """The cosine of a frame's descriptor with the interval before the open one (None: unknown)."""
+        if self.previous is None:
+            return None
+        q = np.asarray(descriptor, dtype=np.float32)
+        qn = float(np.linalg.norm(q))
+        return float(self.previous @ q) / qn if qn and q.shape == self.previous.shape else None
+
+    def add_frame(self, descriptor: np.ndarray | None) -> None:
+        """One frame of the open interval (``descriptor``: int8, or None)."""
+        if descriptor is None:
+            return
+        d = np.asarray(descriptor, dtype=np.float32)
+        norm = float(np.linalg.norm(d))
+        if norm == 0.0:
+            return
+        self._sum = d / norm if self._sum is None else self._sum + d / norm
+
+    def close_interval(self, slot: int) -> None:
+        """The open interval enters D's index as ``slot`` (slots come in order: ``slot == n``)."""
+        row = _as_int8(self._sum) if self._sum is not None else None
+        if row is not None and self._rows.shape[1] not in (0, row.shape[0]):
+            raise ValueError(f"descriptor of length {row.shape[0]}, the intervals' have {self._rows.shape[1]}")
+        width = row.shape[0] if row is not None else self._rows.shape[1]
+        if slot >= self._rows.shape[0] or self._rows.shape[1] != width:
+            grown = np.zeros((max(2 * self._rows.shape[0], slot + 1, 64), width), np.int8)
+            if self._rows.shape[1] == width:
+                grown[:self.n] = self._rows[:self.n]
+            self._rows = grown
+            self._norms = np.concatenate([self._norms, np.zeros(grown.shape[0] - self._norms.shape[0])])
+        if row is not None:
+            self._rows[slot] = row
+            self._norms[slot] = float(np.linalg.norm(row.astype(np.float64)))
+        self.n = slot + 1
+
+    def cosines(self, descriptor: np.ndarray, slots: np.ndarray) -> np.ndarray:
+        """The cosine of a frame's descriptor with the intervals at ``slots`` (NaN where either
+        has none)."""
+        q = np.ascontiguousarray(descriptor, dtype=np.int8)
+        qn = float(np.linalg.norm(q.astype(np.float64)))
+        out = np.full(len(slots), np.nan)
+        if not qn or not self.n or self._rows.shape[1] != q.shape[0]:
+            return out
+        slots = np.asarray(slots, dtype=np.int64)
+        norms = self._norms[slots]
+        ok = norms > 0
+        dots = np.empty(slots.shape[0], np.int64)
+        _int8_dots(self._rows, slots, q, dots)
+        out[ok] = dots[ok] / (norms[ok] * qn)
+        return out
+
+    def warm_up(self) -> None:
+        """Compile the dot-product kernel now, not on a live frame."""
+        _int8_dots(np.zeros((1, 1), np.int8), np.zeros(1, np.int64), np.zeros(1, np.int8), np.zeros(1, np.int64))
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"rows": self._rows[:self.n].copy(), "open": None if self._sum is None else self._sum.copy(),
+                "previous": None if self.previous is None else self.previous.copy()}
+
+    def load_state_dict(self, st: dict[str, Any]) -> None:
+        rows = np.asarray(st["rows"], dtype=np.int8)
+        self.n = rows.shape[0]
+        self._rows = rows.reshape(self.n, rows.shape[1] if rows.ndim == 2 else 0).copy()
+        self._norms = np.linalg.norm(self._rows.astype(np.float64), axis=1)
+        self._sum = None if st["open"] is None else np.asarray(st["open"], dtype=np.float32).copy()
+        self.previous = None if st["previous"] is None else np.asarray(st["previous"], dtype=np.float32).copy()

@@ -62,6 +62,8 @@ class StepResult:
     #: (frame, pose) of every pose the step produced
     poses: list[tuple[int, np.ndarray]] = field(default_factory=list)
     front: FrontEndResult | None = None
+    #: the odometry the back end integrated, (vtrans, vrot, dt): the caller's or visual odometry's
+    odometry: tuple[float, float, float | None] | None = None
 
     @property
     def template_id(self) -> int | None:
@@ -95,7 +97,7 @@ class _SLAM:
         self.back_end = BackEnd(config.back_end()) if backend else None
         self.camera_odometry = None
         if backend and config.odometry == "visual":
-            self.camera_odometry = CameraOdometry(config.visual_odometry)
+            self.camera_odometry = CameraOdometry(config.visual_odometry, config.platform.speed_mps)
         self.run_folder = None
         if self.back_end is not None:
             self.back_end.warm_up()
@@ -153,6 +155,7 @@ class _SLAM:
         res = StepResult(frame, stamp)
         try:
             odo = front(res) or odo
+            res.odometry = odo
         finally:  # the frame's motion happened, whatever its image was
             if self.back_end is not None and odo is not None:
                 self._move(res, odo, stamp)

@@ -4,6 +4,12 @@ importlib.resources, so they work from a wheel and from any directory).
 
 ``load_config("default")`` (a shipped name), ``load_config("my.yaml")`` (a file) or
 ``load_config(None)`` (the models' defaults, which equal the paper's / reference code's values).
+
+A config is applied on top of its ``base:`` (:func:`config_data`): a file that names none is
+applied on top of the shipped ``default``, so a short file of one's own (``source:`` and
+``platform:``) runs the main job on that source; ``base: none`` starts from the models' defaults.
+The shipped configs say ``base: none``: each is complete on its own (``paper`` is frozen bit for
+bit, the data sets' are the reference code's settings), and a copy of one keeps its meaning.
 """
 
 from __future__ import annotations
@@ -24,10 +30,13 @@ from .algorithms.projector import ProjectorConfig
 from .algorithms.ratslam.experience_map import ExperienceMapConfig
 from .algorithms.ratslam.visual_odometry import VisualOdometryConfig
 from .algorithms.spatial_view import SpatialViewConfig
-from .runtime.config import ConfigError, RunConfig, load_yaml_config
+from .runtime.config import ConfigError, RunConfig, merge_config, parse_yaml_config, validate_config
 
-__all__ = ["ConfigError", "FullRunConfig", "Ros2OutConfig", "config_model", "load_config", "packaged_configs",
-           "packaged_config_text"]
+__all__ = ["ConfigError", "DEFAULT_BASE", "FullRunConfig", "Ros2OutConfig", "config_data", "config_model",
+           "load_config", "packaged_configs", "packaged_config_text"]
+
+#: what a config file that names no ``base:`` is applied on top of
+DEFAULT_BASE = "default"
 
 
 class Ros2OutConfig(BaseModel):
@@ -137,21 +146,51 @@ def packaged_config_text(name: str) -> str:
     return f.read_text()
 
 
-def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None,
-                model: type[BaseModel] | None = None) -> Any:
-    """Load a YAML file, or a shipped config by name (``default``, ``irat2011``...), or the
-    defaults when ``path`` is None; apply nested ``overrides``; validate. A file of that name in
-    the current directory wins over a shipped config."""
-    model = model or config_model()
-    if path is None:
-        return load_yaml_config(None, "(defaults)", model, overrides)
+def _config_text(path: str | Path, shipped_only: bool = False) -> tuple[str, str]:
+    """(YAML text, origin) of a config file, or of a shipped config by name. A file of that name
+    in the current directory wins over a shipped config (unless ``shipped_only``)."""
     p = Path(path)
-    if p.is_file():
-        return load_yaml_config(p.read_text(), str(p), model, overrides)
+    if p.is_file() and not shipped_only:
+        return p.read_text(), str(p)
     name = p.stem if p.suffix == ".yaml" and p.parent == Path(".") else str(path)
-    if not p.suffix or p.suffix == ".yaml":
-        if name in packaged_configs():
-            return load_yaml_config(packaged_config_text(name), f"{name}.yaml (shipped with neoslam_stream)",
-                                    model, overrides)
+    if (not p.suffix or p.suffix == ".yaml") and name in packaged_configs():
+        return packaged_config_text(name), f"{name}.yaml (shipped with neoslam_stream)"
     raise ConfigError(f"config file {path} not found (shipped configs work by name too: "
                       f"{', '.join(packaged_configs())})")
+
+
+def config_data(path: str | Path, _seen: tuple[str, ...] = (), _shipped: bool = False) -> tuple[dict[str, Any], str]:
+    """(the mapping, origin) of a config with its ``base:`` resolved: the config applied on top of
+    its base (``base: none``: on nothing, i.e. the models' defaults; no ``base:``: on
+    :data:`DEFAULT_BASE`), a ``source.params`` of the base dropped when the config picks another
+    source kind. A base is the name of a shipped config, or a YAML file (a path relative to the
+    config that names it)."""
+    text, origin = _config_text(path, _shipped)
+    data = parse_yaml_config(text, origin)
+    base = data.pop("base", DEFAULT_BASE)
+    if base is None or base == "none":
+        return data, origin
+    if not isinstance(base, str):
+        raise ConfigError(f"{origin}: base must name a shipped config, a YAML file or none, got {base!r}")
+    is_file = base.endswith((".yaml", ".yml"))
+    if is_file and not Path(base).is_absolute() and not _shipped:
+        base = str(Path(str(path)).parent / base)
+    elif not is_file and base not in packaged_configs():
+        raise ConfigError(f"{origin}: base {base!r} is no shipped config ({', '.join(packaged_configs())}), "
+                          f"no YAML file and not none")
+    if base in (*_seen, str(path)):
+        raise ConfigError(f"{origin}: base {base!r} comes back to itself ({' -> '.join((*_seen, str(path), base))})")
+    under, _ = config_data(base, (*_seen, str(path)), not is_file)
+    return merge_config(under, data), f"{origin} on {base}"
+
+
+def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None,
+                model: type[BaseModel] | None = None) -> Any:
+    """Load a YAML file, or a shipped config by name (``default``, ``irat2011``...), on top of its
+    ``base:`` (:func:`config_data`), or the models' defaults when ``path`` is None; apply nested
+    ``overrides``; validate."""
+    model = model or config_model()
+    if path is None:
+        return validate_config({}, "(defaults)", model, overrides)
+    data, origin = config_data(path)
+    return validate_config(data, origin, model, overrides)

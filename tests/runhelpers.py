@@ -21,8 +21,9 @@ LIGHT = {"features": {"backbone": "random_alexnet"}, "projector": {"projection":
 
 
 def light_config(mode: str, source: dict, **run: Any) -> dict:
-    """A run config of the LIGHT NeoSLAM pipeline in ``mode`` on ``source`` (``run`` overrides)."""
-    return {"run": {"pipeline": "neoslam", "topology": "pipeline", "mode": mode, "live": False,
+    """A run config of the LIGHT NeoSLAM pipeline in ``mode`` on ``source`` (``run`` overrides), on
+    the models' defaults (``base: none``), not on the shipped default."""
+    return {"base": "none", "run": {"pipeline": "neoslam", "topology": "pipeline", "mode": mode, "live": False,
                     "startup_timeout": 240, **run},
             "source": source, **LIGHT}
 

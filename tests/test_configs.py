@@ -65,3 +65,66 @@ def test_cli_unknown_source_prints_one_line_and_exits_2(capsys):
     assert exc.value.code == 2
     err = capsys.readouterr().err.strip()
     assert "unknown source kind 'foldr'" in err and "Traceback" not in err and len(err.splitlines()) == 1
+
+
+# ---------------------------------------------------------------------------- a config on top of its base
+def test_a_short_config_of_ones_own_runs_the_default_on_its_source(tmp_path):
+    own = tmp_path / "my.yaml"
+    own.write_text("source:\n  kind: folder\n  params: {path: data/run1}\nodometry: visual\n")
+    cfg = load_config(own)
+    # applied on top of the shipped default: the same as the default with these values on top
+    expected = load_config("default", {"source": {"kind": "folder", "params": {"path": "data/run1"}},
+                                       "odometry": "visual"})
+    assert cfg.model_dump() == expected.model_dump()
+    assert cfg.run.pipeline == "neoslam" and cfg.source.params == {"path": "data/run1"}  # no synthetic seed
+    assert cfg.platform == load_config("default").platform
+
+
+def test_base_none_starts_from_the_models_defaults_and_shipped_configs_are_complete(tmp_path):
+    from neoslam_stream.config import FullRunConfig, packaged_config_text
+
+    bare = tmp_path / "bare.yaml"
+    bare.write_text("base: none\nodometry: visual\n")
+    assert load_config(bare).model_dump() == FullRunConfig(odometry="visual").model_dump()
+    for name in packaged_configs():  # each says base: none, so it means what it says
+        text = packaged_config_text(name)
+        assert "\nbase: none" in "\n" + text, name
+        assert load_config(name).model_dump() == load_config(_written(tmp_path, name, text)).model_dump()
+
+
+def _written(tmp_path, name, text):
+    path = tmp_path / f"copy_of_{name}.yaml"  # `neoslam config show NAME > copy.yaml`: the same config
+    path.write_text(text)
+    return path
+
+
+def test_a_base_can_be_a_shipped_config_or_a_file_and_faults_are_one_line(tmp_path):
+    (tmp_path / "lab.yaml").write_text("platform: {speed_mps: 0.8}\n")
+    (tmp_path / "robot.yaml").write_text("base: lab.yaml\nplatform: {area_m: 25}\n")
+    cfg = load_config(tmp_path / "robot.yaml")  # robot on lab on the default
+    assert (cfg.platform.speed_mps, cfg.platform.area_m, cfg.run.pipeline) == (0.8, 25, "neoslam")
+    (tmp_path / "irat.yaml").write_text("base: irat2011\nsource: {params: {path: x.bag}}\n")
+    irat = load_config(tmp_path / "irat.yaml")
+    assert irat.pose_cells.pc_dim_xy == 11 and irat.source.params["image_topic"].startswith("/irat_red")
+    (tmp_path / "a.yaml").write_text("base: b.yaml\n")
+    (tmp_path / "b.yaml").write_text("base: a.yaml\n")
+    with pytest.raises(ConfigError, match="comes back to itself"):
+        load_config(tmp_path / "a.yaml")
+    (tmp_path / "c.yaml").write_text("base: defualt\n")
+    with pytest.raises(ConfigError, match="no shipped config"):
+        load_config(tmp_path / "c.yaml")
+
+
+def test_config_show_prints_a_file_merged_onto_its_base(tmp_path, capsys, monkeypatch):
+    import yaml
+
+    from neoslam_stream.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "my.yaml").write_text("source:\n  kind: video\n  params: {path: robot.mp4}\n")
+    assert main(["config", "show", "my.yaml"]) == 0
+    shown = capsys.readouterr().out
+    assert shown.startswith("# my.yaml on default")
+    (tmp_path / "shown.yaml").write_text(shown)
+    assert yaml.safe_load(shown)["run"]["pipeline"] == "neoslam"
+    assert load_config(tmp_path / "shown.yaml").model_dump() == load_config(tmp_path / "my.yaml").model_dump()

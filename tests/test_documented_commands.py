@@ -47,6 +47,7 @@ RUN = {
     "neoslam map info site.neoslam",
     "neoslam config show default",
     "neoslam config show irat2011",
+    "neoslam config show my.yaml",
     "neoslam view runs/monday --save monday.rrd",
     "neoslam evaluate runs/monday --gt data/myrun/groundtruth.tum --gt-align-start",
 }
@@ -110,6 +111,8 @@ ELSEWHERE = {
                        "where it is installed",
     "evo_ape": "evo's command, an outside tool; tests/test_evo.py runs it on our TUM files where evo is installed",
     "evo_rpe": "evo's command, an outside tool; tests/test_evo.py runs it on our TUM files where evo is installed",
+    "python examples/publish_odometry.py": "the robot's side; tests/test_publish_odometry.py runs it against a run "
+                                           "on loopback",
 }
 PLACEHOLDER = re.compile(r"\b(RUN_DIR|OLD_RUN_DIR|DIR|FILE|MAP_FILE|CONFIG|NAME|KIND|HZ|N|S|X|FRAMES)\b")
 FLAG = re.compile(r"(?<![\w-])(--?[A-Za-z][\w-]*)")
@@ -296,6 +299,8 @@ def workdir(datadir) -> Path:
 @pytest.mark.zenoh
 @pytest.mark.parametrize("cmd", sorted(RUN, key=lambda c: ("map info" in c, "map export" in c, c)))
 def test_documented_command_runs_as_written(cmd, workdir):
+    if cmd == "neoslam config show my.yaml" and not (workdir / "my.yaml").exists():
+        (workdir / "my.yaml").write_text("source: {kind: folder, params: {path: data/myrun}}\n")
     r = _neoslam(cmd, workdir)
     assert r.returncode == 0, f"`{cmd}` exited {r.returncode}:\n{r.stdout[-2000:]}\n{r.stderr[-3000:]}"
     if cmd.startswith("neoslam run --source folder"):

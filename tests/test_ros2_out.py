@@ -220,7 +220,7 @@ def test_a_run_from_an_rmw_zenoh_camera_to_ros2_and_outputs_mcap(tmp_path):
     rmw, s2 = _collector(ros_side, "0/slam/**")
     run_dir = tmp_path / "run"
     cfg = tmp_path / "cfg.yaml"
-    cfg.write_text("ros2_out:\n  prefix: /slam\n  map_period_s: 0.5\n")
+    cfg.write_text("base: none\nros2_out:\n  prefix: /slam\n  map_period_s: 0.5\n")
     proc = subprocess.Popen(
         [sys.executable, "-m", "neoslam_stream.cli", "run", "-c", str(cfg), "--pipeline", "ratslam", "--realtime",
          "--no-live", "--source", "rmw-zenoh", "-p", "image_topic=/cam/image_raw", "-p", "odom_topic=/odom",

@@ -55,6 +55,38 @@ def _wait(predicate, timeout: float = 15.0, what: str = "") -> None:
 
 
 # ----------------------------------------------------------------------------- in one process
+def test_the_camera_takes_the_robots_odometry_from_a_zenoh_key():
+    """The robot publishes odom messages (as examples/publish_odometry.py does) while the camera
+    streams: the frames carry the motion received since the frame before, as with the zenoh source."""
+    from neoslam_stream.runtime.bus import open_session, wait_for_peers
+    from neoslam_stream.runtime.messages import Message, encode
+    from neoslam_stream.runtime.ports import free_port
+
+    assert CameraSource.gives_odometry(url="http://x", odom_key="robot/odom") is True
+    ep = f"tcp/127.0.0.1:{free_port()}"
+    server = MjpegServer().start()
+    robot = None
+    try:
+        src = CameraSource(url=server.url, odom_key="robot/odom", listen=[ep])
+        robot = open_session(connect=[ep])
+        wait_for_peers(robot, 1, 10.0)
+        it = iter(src)
+        first = next(it)
+        assert first.odom == (0.0, 0.0, 0.0)  # the first frame moves nothing
+        for i in range(4):  # 4 x 0.5 m at 1 m/s, 4 x 0.1 rad
+            robot.put("robot/odom", encode(Message("odom", i, float(i), {"vtrans": 1.0, "vrot": 0.2, "dt": 0.5})))
+        _wait(lambda: src.odometry.received == 4, what="the odometry messages")
+        second = next(it)
+        dt = second.odom[2]
+        assert dt > 0 and second.odom[0] * dt == pytest.approx(2.0) and second.odom[1] * dt == pytest.approx(0.4)
+        assert src.info()["odometry_received"] == 4
+        src.close()
+    finally:
+        server.stop()
+        if robot is not None:
+            robot.close()
+
+
 def test_camera_reads_an_http_mjpeg_stream_and_stamps_each_frame_when_captured():
     server = MjpegServer().start()
     try:
@@ -70,7 +102,8 @@ def test_camera_reads_an_http_mjpeg_stream_and_stamps_each_frame_when_captured()
     assert all(f.image.shape == (120, 160, 3) and f.encoding == "bgr8" for f in got)
     stamps = [f.stamp for f in got]
     assert before <= stamps[0] and stamps[-1] <= after and stamps == sorted(stamps)  # capture times
-    assert got[0].odom == (0.0, 0.0, 0.0) and got[1].odom[:2] == (0.0, 0.0)  # no wheel odometry
+    # no wheel odometry: the run measures visual odometry (it knows before the run starts)
+    assert got[0].odom is None and CameraSource.gives_odometry(url=server.url) is False
     assert abs(int(got[3].image[60, 100, 0]) - int(got[4].image[60, 100, 0])) > 0  # frames differ
     assert info["kind"] == "camera" and info["opened"]["backend"] == "FFMPEG"
     cam = info["camera"]

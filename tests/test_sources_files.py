@@ -42,8 +42,10 @@ def test_ground_truth_far_outside_its_span_is_none_and_bad_files_pass_through(tm
     assert src.length == 4 and [f.stamp for f in frames] == [0.0, 0.25, 0.5, 0.75]
     assert all(f.groundtruth is None for f in frames)  # 99 s before the first sample
     assert frames[3].image is None and frames[3].compressed == b"not a png"
-    # no odometry file: zero motion over each frame's interval (the back end must not wait for it)
-    assert [f.odom for f in frames] == [(0.0, 0.0, 0.0)] + [(0.0, 0.0, 0.25)] * 3
+    # no odometry file: no odometry, and the source says so before it is built (the run then
+    # measures visual odometry: test_source_params.py)
+    assert all(f.odom is None for f in frames)
+    assert not ImageFolderSource.gives_odometry(path=str(tmp_path))
     assert len(list(ImageFolderSource(str(tmp_path), max_frames=2))) == 2
     (tmp_path / "empty").mkdir()
     with pytest.raises(FileNotFoundError, match="no images"):

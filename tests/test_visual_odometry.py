@@ -87,3 +87,63 @@ def test_stage_publishes_odometry_with_image_intervals():
     assert outs[1]["dt"] == pytest.approx(0.1) and outs[1]["vrot"] == pytest.approx(math.radians(10.0))
     with pytest.raises(ValueError):  # StageInputError: the window is outside a tiny frame
         VisualOdometryNode(vtrans_image_y_min=50).process("image", Message("image", 0, 0.0, {"image": img}))
+
+
+# ---------------------------------------------------------------------------- calibrated scale, pinhole rotation
+def test_the_typical_speed_scale_maps_the_median_raw_speed_so_far_to_the_platforms_speed():
+    from neoslam_stream.algorithms.ratslam.visual_odometry import TypicalSpeedScale
+
+    s = TypicalSpeedScale(0.3)
+    # raw 2: median 2 -> 0.3; raw 4: median of (2, 4) 3 -> 0.4; raw 6: median 4 -> 0.45; raw 0 -> 0;
+    # raw 3: median of (0, 2, 3, 4, 6) 3 -> 0.3
+    assert [s(r) for r in (2.0, 4.0, 6.0, 0.0, 3.0)] == pytest.approx([0.3, 0.4, 0.45, 0.0, 0.3])
+    assert TypicalSpeedScale(0.3)(0.0) == 0.0  # nothing has moved yet: no scale, no motion
+
+
+def test_scale_platform_reads_the_first_motion_as_the_typical_speed():
+    img = np.full((2, 120), 20, dtype=np.uint8)  # flat: every shift differs alike, shift 0 is tried first
+    vo = VisualOdometry(scale="platform", speed_mps=0.5)
+    vo.on_image(img, 0.1)
+    # 51/255 = 0.2 brighter, then 102/255 = 0.4 more: raw speeds 2 and 4 per second, medians 2 and 3
+    v1, _ = vo.on_image(img + 51, 0.1)
+    v2, _ = vo.on_image(img + 153, 0.1)
+    assert (v1, v2) == pytest.approx((0.5, 0.5 * 4 / 3))
+    with pytest.raises(ValueError, match="speed_mps"):
+        VisualOdometry(scale="platform")
+
+
+def _pinhole_view(heading: float, width: int = 200, focal: float = 100.0) -> np.ndarray:
+    """A pinhole camera's view of a world whose brightness depends on the direction only: column u
+    (from the centre, + to the right) looks at heading - atan(u / f)."""
+    u = np.arange(width) + 0.5 - width / 2
+    row = 120 + 100 * np.sin(7 * (heading - np.arctan(u / focal)))
+    return np.tile(row[None], (20, 1)).astype(np.uint8)
+
+
+def test_pinhole_centre_reads_a_rotation_as_the_angle_of_the_centres_shift_and_no_translation():
+    from neoslam_stream.algorithms.ratslam.visual_odometry import rotated_difference
+
+    # 200 columns at 90 degrees: f = 100 px; a left turn of 0.05 rad moves the centre by
+    # f tan(0.05) = 5.004 columns: the best shift is 5, read as atan(5 / 100) rad in 0.1 s
+    before, after = _pinhole_view(0.0), _pinhole_view(0.05)
+    vo = VisualOdometry(camera_fov_deg=90, rotation="pinhole_centre")
+    vo.on_image(before, 0.1)
+    vtrans, vrot = vo.on_image(after, 0.1)
+    assert vrot == pytest.approx(math.atan(5 / 100) / 0.1)
+    # undone, the rotation leaves only the views' rounding to 8 bits (at most a level between the
+    # two); one shift for every column, as OpenRatSLAM's translation reads it, leaves more than that
+    # rounding could
+    p0, p1 = profile(before, 0, -1, 0, -1), profile(after, 0, -1, 0, -1)
+    undone = rotated_difference(p1, p0, 0, 200, 100.0, math.atan2(5, 100))
+    assert undone <= 1 / 255 < 2 / 255 < best_shift(p1, p0)[1]
+    assert vtrans == pytest.approx(undone * 100 / (10 * 0.1))  # vtrans_scaling 100, camera_hz 10
+
+
+def test_state_keeps_the_profiles_and_the_raw_speeds():
+    img = np.full((2, 120), 20, dtype=np.uint8)
+    vo = VisualOdometry(scale="platform", speed_mps=0.5)
+    vo.on_image(img, 0.1)
+    vo.on_image(img + 51, 0.1)
+    again = VisualOdometry(scale="platform", speed_mps=0.5)
+    again.load_state_dict(vo.state_dict())
+    assert again.on_image(img + 153, 0.1) == vo.on_image(img + 153, 0.1)

@@ -76,9 +76,12 @@ class PoseCellStage:
         return Action(action, src, dst, vtrans, vrot, dt, relative_rad=rel, bias_wander=self.bias.wander)
 
     def new_session(self) -> None:
-        """A new session on an old map: times start again."""
+        """A new session on an old map: times start again, and where the robot is waits for its
+        first recognised place (the pose cells and the gate: their ``new_session``)."""
         self.prev_stamp = None
         self.bias.new_session()
+        self.gate.new_session()
+        self.network.new_session()
 
     def info(self) -> dict[str, Any]:
         pc, bias = self.network, self.bias
@@ -115,10 +118,12 @@ def integrate(em: ExperienceMap, action: Action, stamp: float) -> MapPose:
 
 class CameraOdometry:
     """RatSLAM's visual odometry on a stream of stamped frames: each frame -> (vtrans, vrot, dt),
-    dt from the stamps (1 / camera_hz before the first), zero motion until two frames were seen."""
+    dt from the stamps (1 / camera_hz before the first), zero motion until two frames were seen.
+    ``speed_mps``: the platform's typical speed (``scale: platform`` calibrates by it)."""
 
-    def __init__(self, config: VisualOdometryConfig | None = None, **overrides: Any) -> None:
-        self.odometry = VisualOdometry(make_config(VisualOdometryConfig, config, overrides))
+    def __init__(self, config: VisualOdometryConfig | None = None, speed_mps: float | None = None,
+                 **overrides: Any) -> None:
+        self.odometry = VisualOdometry(make_config(VisualOdometryConfig, config, overrides), speed_mps)
         self.prev_stamp: float | None = None
 
     def on_frame(self, pixels: np.ndarray, stamp: float) -> tuple[float, float, float]:
@@ -129,6 +134,20 @@ class CameraOdometry:
         self.prev_stamp = stamp
         vtrans, vrot = res if res is not None else (0.0, 0.0)
         return vtrans, vrot, dt
+
+    def state_dict(self) -> dict[str, Any]:
+        return {**self.odometry.state_dict(), "prev_stamp": -math.inf if self.prev_stamp is None else self.prev_stamp}
+
+    def load_state_dict(self, st: dict[str, Any]) -> None:
+        self.odometry.load_state_dict(st)
+        stamp = float(st["prev_stamp"])
+        self.prev_stamp = None if stamp == -math.inf else stamp
+
+    def new_session(self) -> None:
+        """A new session: its first frame has no previous one to compare with; the raw speeds
+        seen (the same robot and camera) are kept."""
+        self.odometry.prev_trans = self.odometry.prev_rot = None
+        self.prev_stamp = None
 
 
 #: constants of :func:`derived_back_end` (why each value: its docstring)

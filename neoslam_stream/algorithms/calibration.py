@@ -252,6 +252,23 @@ class RunCalibration:
             return math.nan
         return (float(scores[best]) - float(rest.mean())) / (float(rest.std()) + 1e-9)
 
+    # ---------------------------------------------------------------- sessions
+    def new_session(self) -> None:
+        """A new session on a stored map: the evidence of the old stream (its last frames, the
+        templates on probation, its last stamp) is no evidence for the new one; the measured frame
+        interval and the statistics are kept, and the session's closures counted afresh."""
+        self.history.clear()
+        self.pending = []
+        self.last_stamp = None
+        self.closures, self.first_closure_frame = 0, -1
+
+    def session_shift(self, last_old: float, first_new: float) -> float:
+        """What to add to an old session's stamps (its last one ``last_old``) so that they lie one
+        shortest loop (``min_gap_s``) and one frame before the new session's first stamp
+        ``first_new``: the new session's stamps start afresh, the old places are candidates from
+        its first frame on, and every stamp stays in order."""
+        return first_new - self.min_gap_s - self.frame_s - last_old
+
     # ---------------------------------------------------------------- report and state
     def report(self) -> dict[str, Any]:
         """What this run settled on: the unrelated places' level and spread, the score a winner

@@ -181,10 +181,16 @@ class LocalViewFrontEnd:
         #: to duplicate (as D's, SpatialViewCells._confirm_duplicates)
         self.place: list[int] = []
         self.calibration = RunCalibration(self.config.calibration, platform or PlatformConfig())
+        #: set by :meth:`new_session` until the session's first frame: the old sessions' last stamp
+        self._old_last_stamp: float | None = None
 
     def template(self, pixels: np.ndarray, stamp: float | None = None) -> Template:
         """``pixels``: HxW grey or HxWx3 colour, as OpenRatSLAM reads frames."""
         stamp = float(self.frame if stamp is None else stamp)
+        if self._old_last_stamp is not None:  # a new session's first frame: the old stamps move back
+            shift = self.calibration.session_shift(self._old_last_stamp, stamp)
+            self.created = [(s + shift, f) for s, f in self.created]
+            self._old_last_stamp = None
         n_before = len(self.cells.templates)
         if self.config.calibration.enabled:
             vt, rad = self._calibrated(pixels, stamp)
@@ -240,6 +246,15 @@ class LocalViewFrontEnd:
 
     def warm_up(self) -> None:
         self.cells.warm_up()
+
+    def new_session(self) -> None:
+        """A new session on a stored map: as D's (SpatialViewCells.new_session), the templates'
+        creation stamps move back at its first frame to end a shortest loop before it."""
+        if self.created:
+            last = self.calibration.last_stamp
+            self._old_last_stamp = float(self.created[-1][0] if last is None else last)
+        self.calibration.new_session()
+        self.prev = -1
 
     def state_dict(self) -> dict[str, Any]:
         return {"lv": self.cells.state_dict(), "prev": self.prev, "frame": self.frame,

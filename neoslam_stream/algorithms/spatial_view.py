@@ -131,6 +131,8 @@ class SpatialViewCells:
         self.calibration = RunCalibration(self.config.calibration, self.platform, seq.max_step, seq.slack)
         #: the indexed intervals' descriptors (``rerank``)
         self.descriptors = IntervalDescriptors()
+        #: set by :meth:`new_session` until the session's first frame: the old sessions' last stamp
+        self._old_last_stamp: float | None = None
 
     @property
     def n_intervals(self) -> int:
@@ -164,6 +166,9 @@ class SpatialViewCells:
         cfg = self.config
         y = self._validate(sdr)
         stamp = float(self.t if stamp is None else stamp)
+        if self._old_last_stamp is not None:  # a new session's first frame: the old stamps move back
+            self._stamps[:self.n_intervals] += self.calibration.session_shift(self._old_last_stamp, stamp)
+            self._old_last_stamp = None
         y_bm = BitMap(y)
         new_interval = False
         if not self.unions:
@@ -370,6 +375,18 @@ class SpatialViewCells:
         self.index.warm_up()
         if self.config.rerank:
             self.descriptors.warm_up()
+
+    def new_session(self) -> None:
+        """A new session on this map (``neoslam run --map``): its stamps start afresh, so at its first
+        frame the stored intervals' stamps move back to end a shortest loop before it
+        (:meth:`~.calibration.RunCalibration.session_shift`): every known place is a candidate at
+        once, the stamps stay in order (the candidates are found by bisection), and the decision's
+        evidence starts afresh. Frame numbers (``t``) continue."""
+        if self.n_intervals:
+            last = self.calibration.last_stamp
+            self._old_last_stamp = float(self.interval_stamp[-1] if last is None else last)
+        self.calibration.new_session()
+        self.descriptors.previous = None  # the view a moment ago was the old stream's
 
     # ---------------------------------------------------------------- state
     def state_dict(self) -> dict[str, Any]:

@@ -18,8 +18,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                  description="List the shipped configs (`-c NAME` uses one) or print one, "
                              "to copy and edit: neoslam config show default > my.yaml")
     csub.add_parser("list", help="names of the shipped configs").set_defaults(func=cmd_config_list)
-    p = csub.add_parser("show", help="print a shipped config's YAML")
-    p.add_argument("name")
+    p = csub.add_parser("show", help="print a shipped config's YAML, or a config file on top of its base",
+                        description="A shipped config's YAML as it ships; a config file of your own merged "
+                                    "onto its base (the shipped default unless it names another), as the run reads it.")
+    p.add_argument("name", help="a shipped config's name, or a YAML file")
     p.set_defaults(func=cmd_config_show)
 
     msub = group(sub, "map", "map_command", "ACTION", help="export / inspect maps for long-term deployment",
@@ -80,12 +82,20 @@ def cmd_config_list(args: argparse.Namespace) -> int:
 
 
 def cmd_config_show(args: argparse.Namespace) -> int:
-    from ..config import ConfigError, packaged_config_text
+    import yaml
+
+    from ..config import ConfigError, config_data, load_config, packaged_config_text, packaged_configs
 
     try:
-        print(packaged_config_text(args.name), end="")
+        if args.name in packaged_configs() and not Path(args.name).is_file():
+            print(packaged_config_text(args.name), end="")
+            return 0
+        data, origin = config_data(args.name)
+        load_config(args.name)  # a bad value: one line naming the field, as `neoslam run` would
     except ConfigError as exc:
         return error(exc, 2)
+    print(f"# {origin}: merged, complete on its own")
+    print(yaml.safe_dump({"base": "none", **data}, sort_keys=False), end="")
     return 0
 
 

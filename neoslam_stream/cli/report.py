@@ -6,6 +6,21 @@ import sys
 from typing import Any
 
 
+def platform_lines(cfg: Any) -> list[str]:
+    """What a run says at its start about the robot it assumes (``platform:``): its quantities, and,
+    when they are the synthetic world's robot's while the source is another, the one line to set
+    the real robot's."""
+    from ..config import load_config
+
+    p = cfg.platform
+    lines = [f"platform: typical speed {p.speed_mps:g} m/s, shortest loop {p.shortest_loop_m:g} m, "
+             f"area {p.area_m:g} m"]
+    if cfg.source.kind != "synthetic" and p == load_config("default").platform:
+        lines.append("  (the synthetic world's robot, the default's: set your robot's in your config, "
+                     "e.g. platform: {speed_mps: 0.5, shortest_loop_m: 40, area_m: 30})")
+    return lines
+
+
 def print_summary(report: dict[str, Any]) -> None:
     """report.json as one table (a row per stage) and the run's rates, losses and folder."""
     from rich.console import Console

@@ -13,7 +13,7 @@ from typing import Any
 
 from ..config import FullRunConfig
 from .flags import ConfigFlags
-from .report import error, print_evaluation, print_summary
+from .report import error, platform_lines, print_evaluation, print_summary
 
 #: what `neoslam run` runs with no --config
 DEFAULT_CONFIG = "default"
@@ -66,14 +66,22 @@ def add_run_options(p: argparse.ArgumentParser) -> ConfigFlags:
 
 
 def load_run_config(args: argparse.Namespace, fixed: dict[str, Any] | None = None) -> Any:
-    """The config of ``--config`` with the flags given on top (and ``fixed``: dotted paths);
-    a bad value ends the command with one line naming the field (exit 2)."""
-    from ..config import ConfigError, load_config
+    """The config of ``--config`` with the flags given on top (and ``fixed``: dotted paths), as it
+    will run (``launch.prepare``: the source's parameters checked, the odometry rule applied); a bad
+    value ends the command with one line naming the field or parameter (exit 2) before anything
+    starts. Prints what the run assumes: the platform, and visual odometry where the source gives
+    no odometry."""
+    from ..config import load_config
+    from ..launch import prepare
 
     try:
-        return load_config(args.config or DEFAULT_CONFIG, args.config_flags.overrides(args, fixed))
-    except ConfigError as exc:
+        cfg, notes = prepare(load_config(args.config or DEFAULT_CONFIG, args.config_flags.overrides(args, fixed)))
+    except ValueError as exc:  # ConfigError, SourceParamError
         raise SystemExit(error(exc, 2)) from None
+    if cfg.run.pipeline != "emulated":
+        for line in [*platform_lines(cfg), *notes]:
+            print(line, flush=True)
+    return cfg
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -205,6 +205,7 @@ class SpatialViewNode(FrontEndNode):
 
     def new_session(self) -> None:
         self.loops = 0
+        self.core.spatial_view.new_session()
 
 
 #: the node of each chain stage: the plan names ``neoslam_stream.nodes.frontend:make_node``

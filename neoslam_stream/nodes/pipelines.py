@@ -89,7 +89,7 @@ def _backend_specs(cfg: FullRunConfig, specs: list[NodeSpec]) -> None:
     recorder that writes the run folder, hosted in the experience map's process."""
     if cfg.odometry == "visual":
         specs.append(NodeSpec("visual_odometry", f"{RATSLAM_NODES}:make_visual_odometry_node",
-                              cfg.visual_odometry.model_dump()))
+                              {**cfg.visual_odometry.model_dump(), "speed_mps": cfg.platform.speed_mps}))
     specs.append(NodeSpec("pose_cells", f"{RATSLAM_NODES}:make_pose_cells_node", cfg.pose_cells.model_dump()))
     specs.append(NodeSpec("experience_map", f"{RATSLAM_NODES}:make_experience_map_node",
                           cfg.experience_map.model_dump()))

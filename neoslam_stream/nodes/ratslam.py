@@ -200,6 +200,7 @@ class ExperienceMapNode(Node):
 
     def new_session(self) -> None:
         self.last_frame, self.last_stamp = -1, 0.0  # the map stays; frame numbers start again
+        self.em.new_session()
 
     def info(self) -> dict[str, Any]:
         return {"experiences": self.em.n_experiences, "links": self.em.n_links,
@@ -242,21 +243,34 @@ class LocalViewNode(Node):
     def load_state_dict(self, st: dict[str, Any]) -> None:
         self.front.load_state_dict(st)
 
+    def new_session(self) -> None:
+        self.front.new_session()
+
 
 class VisualOdometryNode(Node):
     """RatSLAM's visual odometry in a node: ``image`` -> ``odom`` (vtrans, vrot, dt from the image
-    stamps; zero motion on the first frame). Parameters: :class:`VisualOdometryConfig`'s."""
+    stamps; zero motion on the first frame). Parameters: :class:`VisualOdometryConfig`'s, and
+    ``speed_mps``, the platform's typical speed (``scale: platform``)."""
 
     inputs = (IMAGE,)
     outputs = (ODOM,)
 
-    def __init__(self, **params: Any) -> None:
+    def __init__(self, speed_mps: float | None = None, **params: Any) -> None:
         super().__init__()
-        self.vo = CameraOdometry(VisualOdometryConfig(**params))
+        self.vo = CameraOdometry(VisualOdometryConfig(**params), speed_mps)
 
     def process(self, topic: str, msg: Message) -> Output:
         vtrans, vrot, dt = self.vo.on_frame(camera_pixels(msg.data), msg.stamp)
         return [(ODOM, msg.derive(ODOM, {"vtrans": vtrans, "vrot": vrot, "dt": dt}))]
+
+    def state_dict(self) -> dict[str, Any]:
+        return self.vo.state_dict()
+
+    def load_state_dict(self, st: dict[str, Any]) -> None:
+        self.vo.load_state_dict(st)
+
+    def new_session(self) -> None:
+        self.vo.new_session()
 
 
 def make_pose_cells_node(**params: Any) -> PoseCellsNode:

@@ -185,31 +185,46 @@ def _format_error(exc: ValidationError, origin: str) -> str:
     return f"invalid configuration {origin}: " + "; ".join(faults)
 
 
-def load_yaml_config(text: str | None, origin: str, model: type[BaseModel],
-                     overrides: dict[str, Any] | None = None) -> Any:
-    """Validate YAML ``text`` (None: the model's defaults) with nested ``overrides`` on top against
-    ``model``; any fault is one :class:`ConfigError` naming ``origin`` and the field."""
-    data: dict[str, Any] = {}
-    if text is not None:
-        try:
-            loaded = yaml.safe_load(text) or {}
-        except yaml.YAMLError as exc:
-            raise ConfigError(f"{origin} is not valid YAML: {exc}") from None
-        if not isinstance(loaded, dict):
-            raise ConfigError(f"{origin} must hold a mapping at the top level")
-        data = loaded
+def parse_yaml_config(text: str, origin: str) -> dict[str, Any]:
+    """The mapping a config's YAML ``text`` holds (empty text: an empty mapping); a fault is one
+    :class:`ConfigError` naming ``origin``."""
+    try:
+        loaded = yaml.safe_load(text) or {}
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{origin} is not valid YAML: {exc}") from None
+    if not isinstance(loaded, dict):
+        raise ConfigError(f"{origin} must hold a mapping at the top level")
+    return loaded
+
+
+def validate_config(data: dict[str, Any], origin: str, model: type[BaseModel],
+                    overrides: dict[str, Any] | None = None) -> Any:
+    """``data`` with nested ``overrides`` on top (:func:`merge_config`), validated against ``model``;
+    any fault is one :class:`ConfigError` naming ``origin`` and the field."""
     if overrides:
-        data = merge_dicts(_without_other_kinds_params(data, overrides), overrides)
+        data = merge_config(data, overrides)
     try:
         return model.model_validate(data)
     except ValidationError as exc:
         raise ConfigError(_format_error(exc, origin)) from None
 
 
+def load_yaml_config(text: str | None, origin: str, model: type[BaseModel],
+                     overrides: dict[str, Any] | None = None) -> Any:
+    """Validate YAML ``text`` (None: the model's defaults) with nested ``overrides`` on top against
+    ``model``; any fault is one :class:`ConfigError` naming ``origin`` and the field."""
+    return validate_config({} if text is None else parse_yaml_config(text, origin), origin, model, overrides)
+
+
+def merge_config(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    """The config ``over`` applied on top of ``base`` (:func:`merge_dicts`), except that a
+    ``source.params`` of ``base`` is dropped when ``over`` names another source kind: params belong
+    to their kind (a synthetic world's ``seed`` means nothing to a folder source)."""
+    return merge_dicts(_without_other_kinds_params(base, over), over)
+
+
 def _without_other_kinds_params(data: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
-    """A config's ``source.params`` belong to its ``source.kind``: when the overrides pick another
-    kind (``--source folder``), those params are dropped rather than merged into the new source
-    (a synthetic world's ``seed`` means nothing to a folder source)."""
+    """``data`` without its ``source.params`` when ``over`` picks another source kind."""
     src, new = data.get("source"), over.get("source")
     if not (isinstance(src, dict) and isinstance(new, dict) and "kind" in new):
         return data

@@ -49,3 +49,31 @@ def check_kind(kind: str) -> str:
 def source_factory(kind: str) -> str:
     """The factory path of a source kind (a built-in name, or ``package.module:Class``)."""
     return kind if ":" in check_kind(kind) else SOURCES[kind]
+
+
+def source_class(kind: str) -> Any:
+    """The factory (usually the class) of a source kind, imported; an import that fails is a
+    :class:`~.params.SourceParamError` naming the kind."""
+    from ..runtime.node import load_factory
+    from .params import SourceParamError
+
+    path = source_factory(kind)
+    try:
+        return load_factory(path)
+    except (ImportError, AttributeError, ValueError) as exc:
+        raise SourceParamError(f"source {kind}: cannot load {path}: {exc}") from None
+
+
+def check_source(kind: str, params: dict[str, Any], files: bool = True) -> None:
+    """Check a source's parameters before a run starts (sources/params.py): a
+    :class:`~.params.SourceParamError` names an unknown parameter or a bad value in one line."""
+    from .params import check_params
+
+    check_params(source_class(kind), params, kind, files)
+
+
+def gives_odometry(kind: str, params: dict[str, Any]) -> bool | None:
+    """Whether the source gives odometry with its frames (its ``gives_odometry``), None when it
+    does not say (a source of your own without that class method)."""
+    ask = getattr(source_class(kind), "gives_odometry", None)
+    return ask(**params) if callable(ask) else None

@@ -26,6 +26,7 @@ import numpy as np
 
 from .base import Source, SourceFrame
 from .imaging import DEFAULT_MAX_SIDE, ImageEncodingError, decode_bounded, fit, needs_resize, ros_image
+from .params import ExistingPath, PositiveFloat, PositiveInt
 
 EARTH_RADIUS = 6378137.0
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
@@ -95,10 +96,10 @@ class BagSource(Source):
     motion goes to the next frame.
     """
 
-    def __init__(self, path: str, image_topic: str | None = None, odom_topic: str | None = None,
-                 groundtruth_topic: str | None = None, max_frames: int | None = None,
-                 typestore: str = "ROS2_HUMBLE", groundtruth_max_gap_s: float = 5.0,
-                 max_side: int | None = DEFAULT_MAX_SIDE) -> None:
+    def __init__(self, path: ExistingPath, image_topic: str | None = None, odom_topic: str | None = None,
+                 groundtruth_topic: str | None = None, max_frames: PositiveInt | None = None,
+                 typestore: str = "ROS2_HUMBLE", groundtruth_max_gap_s: PositiveFloat = 5.0,
+                 max_side: PositiveInt | None = DEFAULT_MAX_SIDE) -> None:
         from rosbags.highlevel import AnyReader
         from rosbags.typesys import Stores, get_typestore
 
@@ -263,6 +264,10 @@ class BagSource(Source):
             table[:, 3] = np.arctan2(d[:, 1], d[:, 0])
         table[:, 3] = np.unwrap(table[:, 3])
         return table
+
+    @classmethod
+    def gives_odometry(cls, **params: Any) -> bool:
+        return bool(params.get("odom_topic"))
 
     def info(self) -> dict[str, Any]:
         return {"kind": "bag", "path": str(self.path), "topics": self.topics, "frames": self.length,

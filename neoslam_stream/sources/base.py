@@ -28,6 +28,13 @@ class Source:
     def __iter__(self) -> Iterator[SourceFrame]:
         raise NotImplementedError
 
+    @classmethod
+    def gives_odometry(cls, **params: Any) -> bool | None:
+        """Whether a source built with ``params`` gives odometry with its frames, known before it is
+        built (None: it does not say, and a run takes its config's word). A run whose source gives
+        none measures visual odometry (``neoslam_stream.sources.odometry_rule``)."""
+        return None
+
     @property
     def errors(self) -> dict[str, int]:
         """Records this source skipped, counted per cause (reported as the source's errors)."""

@@ -17,6 +17,7 @@ from typing import Any
 from .base import Source, SourceFrame
 from .capture import CameraError, LiveCapture, camera_target, frame_encoding, loss_causes
 from .imaging import DEFAULT_MAX_SIDE, fit
+from .odometry import OdometrySubscription, frame_odometry
 
 log = logging.getLogger("neoslam.sources.camera")
 
@@ -31,13 +32,16 @@ class CameraSource(Source):
     for ``width``, ``height``, ``rate_hz`` and ``fourcc`` (e.g. MJPG). ``max_side`` bounds the long
     side of a frame; ``stall_timeout_s``: a stream without a frame for that long is reopened;
     ``open_timeout_s`` bounds each opening; ``timeout_s`` ends the stream after that long without
-    a frame (None: only the run's end does).
+    a frame (None: only the run's end does). Odometry: none (the run measures visual odometry), or
+    the robot's ``odom`` messages on ``odom_key`` (``sources/odometry.py``; ``connect`` / ``listen``:
+    the endpoints where the robot publishes them), summed into each frame's motion.
     """
 
     def __init__(self, device: int | str | None = None, url: str | None = None, gstreamer: str | None = None,
                  width: int | None = None, height: int | None = None, rate_hz: float | None = None,
                  fourcc: str | None = None, max_side: int | None = DEFAULT_MAX_SIDE, stall_timeout_s: float = 3.0,
-                 open_timeout_s: float = 10.0, timeout_s: float | None = None) -> None:
+                 open_timeout_s: float = 10.0, timeout_s: float | None = None, odom_key: str | None = None,
+                 connect: list[str] | None = None, listen: list[str] | None = None) -> None:
         self.capture = LiveCapture(camera_target(device, url, gstreamer), width=width, height=height,
                                    rate_hz=rate_hz, fourcc=fourcc, stall_timeout_s=stall_timeout_s,
                                    open_timeout_s=open_timeout_s)
@@ -46,10 +50,14 @@ class CameraSource(Source):
         self.length = None
         self.rate_hz = rate_hz or self.capture.opened.get("fps")
         self.ended_by_timeout = False
+        self.odometry = OdometrySubscription(odom_key, connect=connect, listen=listen) if odom_key else None
+
+    @classmethod
+    def gives_odometry(cls, **params: Any) -> bool:
+        """With ``odom_key``: the robot's odometry messages; else frames only (visual odometry)."""
+        return bool(params.get("odom_key"))
 
     def __iter__(self) -> Iterator[SourceFrame]:
-        log.warning("camera: no wheel odometry: every frame carries zero motion "
-                    "(odometry: visual measures motion from the images)")
         frame = 0
         prev: float | None = None
         cap = self.capture
@@ -66,8 +74,9 @@ class CameraSource(Source):
                 continue
             dt = 0.0 if prev is None else max(0.0, item.stamp - prev)
             prev = item.stamp
+            odom = frame_odometry(self.odometry.take(), dt) if self.odometry is not None else None
             yield SourceFrame(frame, item.stamp, image=fit(item.image, self.max_side),
-                              encoding=frame_encoding(item.image) or "bgr8", odom=(0.0, 0.0, dt))
+                              encoding=frame_encoding(item.image) or "bgr8", odom=odom)
             frame += 1
 
     @property
@@ -81,7 +90,8 @@ class CameraSource(Source):
         figures = self.capture.figures()
         return {"kind": "camera", "target": figures["target"], "opened": figures["opened"],
                 "rate_hz": self.rate_hz, "dropped": figures["dropped"], "lost": loss_causes(figures),
-                "outages": figures["outages"], "camera": figures, "ended_by_timeout": self.ended_by_timeout}
+                "outages": figures["outages"], "camera": figures, "ended_by_timeout": self.ended_by_timeout,
+                "odometry_received": self.odometry.received if self.odometry is not None else 0}
 
     def interrupt(self) -> None:
         """End the iteration soon (the run's stop or duration while the camera is silent)."""
@@ -89,3 +99,5 @@ class CameraSource(Source):
 
     def close(self) -> None:
         self.capture.close()
+        if self.odometry is not None:
+            self.odometry.close()

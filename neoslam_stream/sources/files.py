@@ -19,6 +19,7 @@ from ..tum import read_tum_rows
 from .bag import interpolate_pose
 from .base import Source, SourceFrame
 from .imaging import DEFAULT_MAX_SIDE, decode_bounded, fit
+from .params import ExistingDir, ExistingPath, PositiveFloat, PositiveInt
 
 log = logging.getLogger("neoslam.sources.files")
 
@@ -102,9 +103,9 @@ class ImageFolderSource(Source):
     ``odometry.tum`` holds one odometry pose per image (row i belongs to image i): it gives the
     frame stamps (else ``frame / rate_hz``) and each frame's (vtrans, vrot, dt) as the motion
     between consecutive poses. Ground truth is interpolated at each frame's stamp (any rate).
-    Without an odometry file every frame carries zero motion ``(0, 0, dt)`` (one warning when
-    the source is built): the back end then runs on the views alone; ``odometry: visual`` in the
-    config measures motion from the images instead.
+    Without an odometry file the frames carry no odometry (``gives_odometry`` says so before the
+    run starts): the run then measures visual odometry from the images, as for every source
+    without odometry.
 
     Files that are no image files (a directory, a FIFO, a symbolic-link loop or a dangling link,
     an unreadable file) are counted as source errors with their path and reason and skipped;
@@ -113,9 +114,9 @@ class ImageFolderSource(Source):
     scale), see :mod:`.imaging`.
     """
 
-    def __init__(self, path: str, rate_hz: float = 10.0, odometry: str | None = None,
-                 groundtruth: str | None = None, max_frames: int | None = None,
-                 groundtruth_max_gap_s: float = 5.0, max_side: int | None = DEFAULT_MAX_SIDE) -> None:
+    def __init__(self, path: ExistingDir, rate_hz: PositiveFloat = 10.0, odometry: ExistingPath | None = None,
+                 groundtruth: ExistingPath | None = None, max_frames: PositiveInt | None = None,
+                 groundtruth_max_gap_s: PositiveFloat = 5.0, max_side: PositiveInt | None = DEFAULT_MAX_SIDE) -> None:
         root = Path(path)
         if not root.is_dir():
             raise FileNotFoundError(f"image folder {root} does not exist")
@@ -138,9 +139,6 @@ class ImageFolderSource(Source):
             self.odo, errors = read_tum_rows(odo_path)
             for _i, cause in errors:
                 self.record_error(cause)
-        else:
-            log.warning("no odometry file (%s): every frame carries zero motion; use `odometry: visual` "
-                        "to measure motion from the images", odo_path)
         if gt_path.exists():
             gt, errors = read_tum_rows(gt_path)
             for _i, cause in errors:
@@ -151,6 +149,11 @@ class ImageFolderSource(Source):
             self.gt[:, 3] = np.unwrap(self.gt[:, 3])
         self.groundtruth_max_gap_s = groundtruth_max_gap_s
         self.root = root
+
+    @classmethod
+    def gives_odometry(cls, **params: Any) -> bool:
+        """With an odometry file: ``odometry``, or ``odometry.tum`` in the folder."""
+        return bool(params.get("odometry")) or (Path(params.get("path", "")) / "odometry.tum").is_file()
 
     def __iter__(self) -> Iterator[SourceFrame]:
         prev_t: float | None = None
@@ -164,7 +167,7 @@ class ImageFolderSource(Source):
             t = i / self.rate_hz if prev_t is None else prev_t + 1.0 / self.rate_hz
             odom = gt = None
             if self.odo is None:
-                odom = (0.0, 0.0, 0.0 if prev_t is None else t - prev_t)
+                pass  # no odometry file: the run measures visual odometry
             elif i < len(self.odo):
                 row = self.odo[i]
                 if not np.all(np.isfinite(row)):
@@ -217,8 +220,8 @@ class VideoSource(Source):
     """Frames of a video file (OpenCV), stamped by the container's frame rate; frames whose long
     side exceeds ``max_side`` pixels are resized."""
 
-    def __init__(self, path: str, rate_hz: float | None = None, max_frames: int | None = None,
-                 max_side: int | None = DEFAULT_MAX_SIDE) -> None:
+    def __init__(self, path: str, rate_hz: PositiveFloat | None = None, max_frames: PositiveInt | None = None,
+                 max_side: PositiveInt | None = DEFAULT_MAX_SIDE) -> None:
         camera = camera_hint(path)
         if camera:
             raise ValueError(f"{path!r} names a camera or a stream, not a video file: read it with --source camera {camera}")
@@ -235,6 +238,10 @@ class VideoSource(Source):
         self.rate_hz = rate_hz or (fps if fps > 0 else 10.0)
         self.length = min(n, max_frames) if max_frames and n else (n or max_frames)
         self.max_frames = max_frames
+
+    @classmethod
+    def gives_odometry(cls, **params: Any) -> bool:
+        return False  # frames only: the run measures visual odometry
 
     def __iter__(self) -> Iterator[SourceFrame]:
         cap = cv2.VideoCapture(str(self.path))

@@ -205,6 +205,9 @@ class RmwZenohCameraSource(ZenohRos2CameraSource):
     frames are resized; 16-bit encodings become 8-bit, as for ``zenoh-ros2``).
     """
 
+    #: the parameters, checked before a run starts (sources/params.py)
+    params_model = RmwZenohConfig
+
     def __init__(self, image_topic: str, odom_topic: str | None = None, domain_id: int = 0,
                  connect: list[str] | None = None, listen: list[str] | None = None, mode: str = "peer",
                  capacity: int = 2, timeout_s: float | None = None, warn_after_s: float = 5.0,

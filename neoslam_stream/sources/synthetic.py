@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 from numba import njit
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from .base import Source, SourceFrame
 
@@ -230,6 +230,12 @@ class SyntheticConfig(BaseModel):
     #: standard deviation of the yaw-rate bias random walk per frame, as a fraction of odom_noise
     odom_walk: float = Field(0.1, ge=0)
 
+    @model_validator(mode="after")
+    def _one_lap(self) -> SyntheticConfig:
+        if self.laps_cw + self.laps_ccw < 1:
+            raise ValueError("the route needs at least one lap (laps_cw + laps_ccw >= 1)")
+        return self
+
 
 def _lap_headings(lap: np.ndarray) -> np.ndarray:
     """The direction of motion along the closed lap (central difference: the tangent on arcs)."""
@@ -281,10 +287,11 @@ class SyntheticWorldSource(Source):
     of one route, ``laps`` the (start, stop, "cw"/"ccw") frame span of each lap.
     """
 
+    #: the parameters, checked before a run starts (sources/params.py)
+    params_model = SyntheticConfig
+
     def __init__(self, **params: Any) -> None:
         cfg = SyntheticConfig(**params)
-        if cfg.laps_cw + cfg.laps_ccw < 1:
-            raise ValueError("the route needs at least one lap (laps_cw + laps_ccw >= 1)")
         self.config = cfg
         self.world = SyntheticWorld(cfg.width, cfg.height, cfg.fov_deg, seed=cfg.seed)
         self.rate_hz = cfg.rate_hz
@@ -330,6 +337,10 @@ class SyntheticWorldSource(Source):
                               odom=(float(odo[i, 0]), float(odo[i, 1]), float(odo[i, 2])),
                               groundtruth=(float(x), float(y), float(math.remainder(th, 2 * math.pi))))
             i += 1
+
+    @classmethod
+    def gives_odometry(cls, **params: Any) -> bool:
+        return True  # the simulated wheel odometry
 
     def info(self) -> dict[str, Any]:
         return {"kind": "synthetic", "frames": self.length, "route_frames": self.route_len,

@@ -23,7 +23,9 @@ import threading
 import time
 from collections import deque
 from collections.abc import Iterator
-from typing import Any
+from typing import Annotated, Any, Literal
+
+from pydantic import BeforeValidator
 
 from ..runtime.bus import open_session
 from ..runtime.messages import MessageError
@@ -32,6 +34,8 @@ from .base import Source, SourceFrame
 from .capture import loss_causes
 from .cdr import CdrError, decode
 from .imaging import DEFAULT_MAX_SIDE, decode_bounded, fit, needs_resize
+from .odometry import OdometrySubscription, frame_odometry
+from .params import PositiveFloat, PositiveInt
 
 log = logging.getLogger("neoslam.sources.zenoh")
 
@@ -42,6 +46,19 @@ def ros2_key(topic: str, namespace: str | None = None) -> str:
     if namespace:
         key = f"{namespace.strip('/')}/{key}"
     return key
+
+
+def _bridge_namespace(namespace: Any) -> Any:
+    if namespace is not None and not isinstance(namespace, str):
+        # `-p namespace=1` parses as a number: a ROS domain id, which this source has no use for
+        raise ValueError(f"namespace {namespace!r} must be the bridge's namespace (a name such as bot1); "
+                         "for ROS 2 nodes running rmw_zenoh use --source rmw-zenoh -p domain_id=N")
+    return namespace
+
+
+#: the bridge's namespace, checked before a run starts (sources/params.py)
+Namespace = Annotated[str, BeforeValidator(_bridge_namespace)]
+ImageType = Literal["sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"]
 
 
 class _Live(Source):
@@ -107,14 +124,11 @@ class ZenohRos2CameraSource(_Live):
     8-bit: :mod:`.imaging`).
     """
 
-    def __init__(self, image_topic: str, image_type: str = "sensor_msgs/msg/Image", odom_topic: str | None = None,
-                 namespace: str | None = None, connect: list[str] | None = None, listen: list[str] | None = None,
-                 capacity: int = 2, timeout_s: float | None = None, mode: str = "peer",
-                 max_side: int | None = DEFAULT_MAX_SIDE) -> None:
-        if namespace is not None and not isinstance(namespace, str):
-            # `-p namespace=1` parses as a number: a ROS domain id, which this source has no use for
-            raise ValueError(f"namespace {namespace!r} must be the bridge's namespace (a name such as bot1); "
-                             "for ROS 2 nodes running rmw_zenoh use --source rmw-zenoh -p domain_id=N")
+    def __init__(self, image_topic: str, image_type: ImageType = "sensor_msgs/msg/Image", odom_topic: str | None = None,
+                 namespace: Namespace | None = None, connect: list[str] | None = None, listen: list[str] | None = None,
+                 capacity: PositiveInt = 2, timeout_s: PositiveFloat | None = None,
+                 mode: Literal["peer", "client"] = "peer", max_side: PositiveInt | None = DEFAULT_MAX_SIDE) -> None:
+        _bridge_namespace(namespace)
         if image_type not in ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"):
             raise ValueError(f"image_type {image_type!r} must be sensor_msgs/msg/Image or CompressedImage")
         super().__init__(connect, listen, capacity, timeout_s, mode)
@@ -128,6 +142,10 @@ class ZenohRos2CameraSource(_Live):
         if odom_topic:
             self.keys["odom"] = ros2_key(odom_topic, namespace)
             self._subs.append(self._session.declare_subscriber(self.keys["odom"], self._on_odom))
+
+    @classmethod
+    def gives_odometry(cls, **params: Any) -> bool:
+        return bool(params.get("odom_topic"))
 
     def _on_odom(self, sample: Any) -> None:
         try:
@@ -197,9 +215,10 @@ class ZenohRos2CameraSource(_Live):
 
 class ZenohImageSource(_Live):
     """Our msgpack ``image`` messages from any zenoh key (a non-ROS camera), with optional
-    odometry: our ``odom`` messages on ``odom_key``, each the motion (vtrans, vrot, dt) of its own
-    interval; the motions received between two images are summed into the later image's odometry.
-    Raw frames whose long side exceeds ``max_side`` pixels are resized.
+    odometry: our ``odom`` messages on ``odom_key`` (:class:`~.odometry.OdometrySubscription`), each
+    the motion (vtrans, vrot, dt) of its own interval; the motions received between two images are
+    summed into the later image's odometry. Raw frames whose long side exceeds ``max_side`` pixels
+    are resized.
 
     A publisher that numbers its frames consecutively (``neoslam camera`` does) has the gaps in
     its numbers counted as frames lost on the way (``lost_before_source``; a number that goes back
@@ -209,22 +228,24 @@ class ZenohImageSource(_Live):
     """
 
     def __init__(self, key: str, odom_key: str | None = None, connect: list[str] | None = None,
-                 listen: list[str] | None = None, capacity: int = 2, timeout_s: float | None = None,
-                 mode: str = "peer", max_side: int | None = DEFAULT_MAX_SIDE) -> None:
+                 listen: list[str] | None = None, capacity: PositiveInt = 2, timeout_s: PositiveFloat | None = None,
+                 mode: Literal["peer", "client"] = "peer", max_side: PositiveInt | None = DEFAULT_MAX_SIDE) -> None:
         super().__init__(connect, listen, capacity, timeout_s, mode)
         self.max_side = max_side
         self.key = key
         self.odom_key = odom_key
-        self._acc = [0.0, 0.0]
         self._lock = threading.Lock()
         self._last_number: int | None = None
         self.lost_before_source = 0
         self.camera: dict[str, Any] | None = None  # the publisher's newest figures, and the first
         self._camera_baseline: dict[str, Any] | None = None
+        self.odometry = OdometrySubscription(odom_key, self._session, self._error) if odom_key else None
         self._sub = self._session.declare_subscriber(key, self._on_sample)
         self._stats_sub = self._session.declare_subscriber(f"{key}/stats", self._on_camera_stats)
-        if odom_key:
-            self._odom_sub = self._session.declare_subscriber(odom_key, self._on_odom)
+
+    @classmethod
+    def gives_odometry(cls, **params: Any) -> bool:
+        return bool(params.get("odom_key"))
 
     def _on_camera_stats(self, sample: Any) -> None:
         try:
@@ -237,17 +258,6 @@ class ZenohImageSource(_Live):
             if self._camera_baseline is None:
                 self._camera_baseline = dict(msg.data)
 
-    def _on_odom(self, sample: Any) -> None:
-        try:
-            msg = decode_message(sample.payload.to_bytes(), expected_type="odom")
-        except MessageError as exc:
-            self._error(str(exc))
-            return
-        dt = float(msg.data.get("dt") or 0.0)
-        with self._lock:
-            self._acc[0] += float(msg.data["vtrans"]) * dt
-            self._acc[1] += float(msg.data["vrot"]) * dt
-
     def _on_sample(self, sample: Any) -> None:
         try:
             msg = decode_message(sample.payload.to_bytes(), expected_type="image")
@@ -255,12 +265,10 @@ class ZenohImageSource(_Live):
             self._error(str(exc))
             return
         with self._lock:
-            acc = tuple(self._acc)
-            self._acc = [0.0, 0.0]
             last, self._last_number = self._last_number, msg.frame
             if last is not None and msg.frame > last + 1:
                 self.lost_before_source += msg.frame - last - 1
-        self._push({"msg": msg, "acc": acc})
+        self._push({"msg": msg, "acc": self.odometry.take() if self.odometry else (0.0, 0.0)})
 
     def __iter__(self) -> Iterator[SourceFrame]:
         frame = 0
@@ -269,10 +277,10 @@ class ZenohImageSource(_Live):
             item = self._next()
             if item is None:
                 return
-            msg, (d, th) = item["msg"], item["acc"]
+            msg = item["msg"]
             dt = 0.0 if prev_t is None else max(0.0, msg.stamp - prev_t)
             prev_t = msg.stamp
-            odom = ((d / dt, th / dt, dt) if dt > 0 else (0.0, 0.0, 0.0)) if self.odom_key else None
+            odom = frame_odometry(item["acc"], dt) if self.odometry else None
             data = msg.data
             if data.get("image") is not None:
                 img = fit(data["image"], self.max_side)
@@ -288,6 +296,7 @@ class ZenohImageSource(_Live):
             camera, baseline = self.camera, self._camera_baseline
             lost_on_way = self.lost_before_source
         out: dict[str, Any] = {"kind": "zenoh", "key": self.key, "odom_key": self.odom_key, "received": self.received,
+                               "odometry_received": self.odometry.received if self.odometry else 0,
                                "dropped": self.dropped, "errors": self.errors, "lost_before_source": lost_on_way}
         lost = {"lost between the publisher and this source (gaps in its frame numbers)": lost_on_way}
         if camera is not None and baseline is not None:

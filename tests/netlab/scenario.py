@@ -31,8 +31,9 @@ LIGHT = {"features": {"backbone": "random_alexnet"}, "projector": {"projection":
 
 
 def split_config(mode: str, frames: int, rate: float, **run: Any) -> dict[str, Any]:
-    """The LIGHT NeoSLAM on small synthetic frames, paced at ``rate`` frames per second."""
-    return {"run": {"pipeline": "neoslam", "topology": "pipeline", "mode": mode, "live": False,
+    """The LIGHT NeoSLAM on small synthetic frames, paced at ``rate`` frames per second (on the
+    models' defaults: ``base: none``)."""
+    return {"base": "none", "run": {"pipeline": "neoslam", "topology": "pipeline", "mode": mode, "live": False,
                     "startup_timeout": 240, **run},
             "source": {"kind": "synthetic", "params": {"seed": 0, "frames": frames, "width": 160, "height": 96},
                        "rate": rate, "pacing": "fixed"}, **LIGHT}

@@ -14,6 +14,13 @@ with ``bias_walk``, as a pose graph whose yaw-rate bias wanders as far as the ru
 ``openratslam_compat=True`` keeps three C++ quirks that the default fixes (marked "fix n" below,
 tabled in docs/ratslam.md). The map maps the pose cells' experience ids onto its own indices, so a
 lost or repeated action is repaired (a link to a known id, a node for an unknown one), not refused.
+
+Sessions (``neoslam run --map``): a new session's robot is anywhere, so :meth:`new_session` makes no
+experience current, and the session's first experience starts a part of the map of its own, linked
+to nothing of the old one (a link from the old session's last experience would say the robot drove
+from there, a branch through walls). The first link between two parts (the new session's first
+recognised old place) moves the newer part rigidly onto the older, so that the link holds exactly:
+the old map stays where it was, and the new session's experiences and poses are on it.
 """
 
 from __future__ import annotations
@@ -23,8 +30,10 @@ import time
 from typing import Any, Literal
 
 import numpy as np
+import scipy.sparse as sp
 from numba import njit
 from pydantic import BaseModel, ConfigDict, Field, model_validator
+from scipy.sparse.csgraph import connected_components
 
 from .._config import make_config
 from ..errors import InvalidInput
@@ -177,6 +186,8 @@ class ExperienceMap:
         self.link_set: set[tuple[int, int]] = set()
         self.ids: list[int] = []  # index -> experience id (as the pose cells number them)
         self.index: dict[int, int] = {}  # experience id -> index
+        #: index -> the connected part of the map it belongs to (a new session starts a part)
+        self.part: list[int] = []
         self._cur = -1
         self.accum_dx = self.accum_dy = self.accum_t = 0.0
         self.accum_facing = math.radians(self.config.exp_initial_em_deg)
@@ -256,6 +267,7 @@ class ExperienceMap:
         self._n += 1
         self.ids.append(exp_id)
         self.index[exp_id] = i
+        self.part.append(self.part[self._cur] if self._cur >= 0 else max(self.part, default=-1) + 1)
         if self._cur >= 0:
             self._link(self._cur, i, 0.0, closes_loop=False)
         self._set(i, 0.0)
@@ -273,6 +285,8 @@ class ExperienceMap:
         d = math.hypot(self.accum_dx, self.accum_dy)
         heading = signed_delta(th_a, math.atan2(self.accum_dy, self.accum_dx))
         facing = signed_delta(th_a, clip_pi(self.accum_facing + rel_rad))
+        if self.part[a] != self.part[b]:
+            self._join(a, b, d, heading, facing)
         j = self._m
         self._lf, self._lv = _grow(self._lf, j + 1), _grow(self._lv, j + 1)
         self._lf[j] = (a, b)
@@ -280,6 +294,42 @@ class ExperienceMap:
         self._m += 1
         self.link_set.add((a, b))
         self._loop_linked |= closes_loop
+
+    def _join(self, a: int, b: int, d: float, heading: float, facing: float) -> None:
+        """Link a -> b (``d``, ``heading``, ``facing`` relative to a) joins two parts: the newer part
+        (the one without the map's first experience; else a's) moves rigidly so that the link holds
+        exactly, and the two become one."""
+        nodes = self._nodes
+        move_a = self.part[a] != self.part[0]
+        fixed, moved = (b, a) if move_a else (a, b)
+        xf, yf, thf = nodes[fixed, :3]
+        if move_a:  # where a must be for b to lie where the link says
+            th_new = thf - facing
+            x_new, y_new = xf - d * math.cos(th_new + heading), yf - d * math.sin(th_new + heading)
+        else:
+            th_new = thf + facing
+            x_new, y_new = xf + d * math.cos(thf + heading), yf + d * math.sin(thf + heading)
+        xm, ym, thm = nodes[moved, :3]
+        turn = th_new - thm
+        c, s = math.cos(turn), math.sin(turn)
+        old, new = self.part[moved], self.part[fixed]
+        sel = np.flatnonzero(np.asarray(self.part) == old)
+        dx, dy = nodes[sel, 0] - xm, nodes[sel, 1] - ym
+        nodes[sel, 0], nodes[sel, 1] = x_new + c * dx - s * dy, y_new + s * dx + c * dy
+        nodes[sel, 2] = [clip_pi(v) for v in nodes[sel, 2] + turn]
+        if self._cur >= 0 and self.part[self._cur] == old:  # the dead reckoning since it turns too
+            self.accum_dx, self.accum_dy = c * self.accum_dx - s * self.accum_dy, s * self.accum_dx + c * self.accum_dy
+            self.accum_facing = clip_pi(self.accum_facing + turn)
+        for i in sel.tolist():
+            self.part[i] = new
+
+    def new_session(self) -> None:
+        """A new session on this map: no experience is current, and the dead reckoning starts from
+        the robot's last pose (the best guess until a recognised place joins the new session's part
+        to the map: module docstring)."""
+        x, y, th = self.robot_pose()
+        self._cur = -1
+        self.accum_dx, self.accum_dy, self.accum_facing, self.accum_t = x, y, th, 0.0
 
     def _set(self, e: int, rel_rad: float) -> None:
         if e == self._cur:
@@ -410,3 +460,6 @@ class ExperienceMap:
         self.link_set = {(int(a), int(b)) for a, b in self._lf.tolist()}
         c, self.accum_dx, self.accum_dy, self.accum_t, self.accum_facing = (float(v) for v in st["scalars"])
         self._cur = int(c)
+        # the parts follow from the links
+        adjacency = sp.csr_matrix((np.ones(self._m), (self._lf[:, 0], self._lf[:, 1])), shape=(self._n, self._n))
+        self.part = connected_components(adjacency, directed=False)[1].tolist() if self._n else []

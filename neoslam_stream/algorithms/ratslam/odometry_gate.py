@@ -77,6 +77,13 @@ class OdometryGate:
         self.current = template
         return True
 
+    def new_session(self) -> None:
+        """A new session on a stored map: the dead reckoning of the old one says nothing about where
+        the robot is now, so the next recognition of a known place passes (the path driven since
+        the last accepted one counts as endless) and re-anchors the estimate."""
+        self.path_m = math.inf
+        self.current = -1
+
     def state_dict(self) -> dict[str, Any]:
         return {"pose": [self.x, self.y, self.th, self.path_m], "current": self.current, "refused": self.refused,
                 "places": [[k, v[0], v[1]] for k, v in self.places.items()]}

@@ -106,6 +106,10 @@ class PoseCellNetwork:
         self.vt_delta_pc_th = 0.0
         self.odo_update = False
         self.vt_update = False
+        #: a new session on a stored map waits for its first recognised place (:meth:`new_session`):
+        #: whether it still waits, and how many templates the earlier sessions made
+        self.lost = False
+        self.session_templates = 0
 
     @property
     def C(self) -> float:
@@ -279,6 +283,8 @@ class PoseCellNetwork:
             self.templates[vt] = [self.best[0], self.best[1], self.best[2], c.vt_active_decay,
                                   float(len(self.templates))]
             self._decay_step[vt] = self._vt_steps - 1
+        elif self.lost and self.templates[vt][4] < self.session_templates:
+            self._relocalise(self._decayed(vt), rad)
         else:
             t = self._decayed(vt)
             size = len(self.templates)
@@ -313,6 +319,28 @@ class PoseCellNetwork:
         self.prev_vt = self.current_vt
         self.current_vt = vt
         self.vt_update = True
+
+    def _relocalise(self, t: list[float], rad: float) -> None:
+        """The packet starts afresh at template ``t``'s pose (its heading turned by ``rad``), as the
+        network starts a run: one active cell."""
+        N, T = self.config.pc_dim_xy, self.config.pc_dim_th
+        th = (t[2] + rad / (2 * math.pi) * T) % T
+        self.P = np.zeros_like(self.P)
+        self.P[round(th) % T, round(t[1]) % N, round(t[0]) % N] = 1.0
+        self.best = (t[0], t[1], th)
+        self.lost = False
+
+    def new_session(self) -> None:
+        """A new session on a stored map: where the robot is, nothing says until it recognises a
+        place of an earlier session. Until then the packet stays where it was (the new session's
+        own places are laid out around it, and the experience map keeps them apart from the old
+        map); the first template of an earlier session that comes back puts the packet at that
+        template's pose, so that the next action links the new session's places to that
+        template's experience. No experience is current: the old session's last one is not where
+        the new session starts."""
+        self.lost = True
+        self.session_templates = len(self.templates)
+        self.current_exp = -1
 
     def _decayed(self, vt: int) -> list[float]:
         """Template vt with its decay relaxed by pc_vt_restore for every template step since it was
@@ -357,11 +385,12 @@ class PoseCellNetwork:
                 thr = self.config.exp_delta_pc_threshold
                 if not self.experiences or not self.template_exps.get(self.current_vt):
                     new = self._create_experience()
-                    if self.experiences and len(self.experiences) > 1:
+                    if self.experiences and len(self.experiences) > 1 and src >= 0:
                         self.links.add((src, new))
                     self.current_exp = new
                     action = CREATE_NODE
-                elif self._delta_pc(self.current_exp) > thr or self.current_vt != self.prev_vt:
+                elif (self.current_exp < 0 or self._delta_pc(self.current_exp) > thr
+                      or self.current_vt != self.prev_vt):
                     best_e, best_d = -1, math.inf
                     for e in self.template_exps[self.current_vt]:
                         if e == self.current_exp:
@@ -377,7 +406,8 @@ class PoseCellNetwork:
                         self.current_exp = best_e
                     else:
                         new = self._create_experience()
-                        self.links.add((src, new))
+                        if src >= 0:
+                            self.links.add((src, new))
                         self.current_exp = new
                         action = CREATE_NODE
         return action, src, self.current_exp, self.vt_delta_pc_th * 2 * math.pi / self.config.pc_dim_th
@@ -393,7 +423,8 @@ class PoseCellNetwork:
                 "template_exps": {str(k): v for k, v in self.template_exps.items()},
                 "links": [list(lk) for lk in sorted(self.links)],
                 "scalars": [self.current_exp, self.current_vt, self.prev_vt, self.vt_delta_pc_th,
-                            int(self.odo_update), int(self.vt_update)]}
+                            int(self.odo_update), int(self.vt_update)],
+                "session": [int(self.lost), self.session_templates]}
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
         """Restore :meth:`state_dict`; a checkpoint of another network size is refused (ValueError)."""
@@ -416,3 +447,5 @@ class PoseCellNetwork:
         ce, cv, pv, d, ou, vu = st["scalars"]
         self.current_exp, self.current_vt, self.prev_vt = int(ce), int(cv), int(pv)
         self.vt_delta_pc_th, self.odo_update, self.vt_update = float(d), bool(ou), bool(vu)
+        lost, known = st.get("session", (0, 0))  # maps exported before sessions were kept: not lost
+        self.lost, self.session_templates = bool(lost), int(known)

@@ -18,9 +18,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from . import runlog
 from .bus import key_for, open_session
 from .collector import FinalTracker, StatsCollector
-from .messages import Topic, register_topics
+from .messages import LOG, Topic, register_topics
 from .report import _json_default, build_report, write_report
 
 
@@ -130,6 +131,10 @@ def run_monitor(spec: MonitorSpec) -> None:
     run_dir = Path(spec.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
+    # every process's log lines (runlog.py) into log.jsonl; the monitor's own on the bus too
+    log_file = runlog.LogFile(run_dir, t0)
+    subs.append(session.declare_subscriber(key_for(spec.run, str(LOG)), log_file.on_sample))
+    logs = runlog.attach(session, spec.run, "monitor")
     live = None
     if spec.live:
         from rich.live import Live
@@ -172,8 +177,10 @@ def run_monitor(spec: MonitorSpec) -> None:
     report["control_refused_monitor"] = gate.refused
     write_report(run_dir / "report.json", report)
     token.undeclare()
+    runlog.detach(logs)
     for s in subs:
         s.undeclare()
+    log_file.close()
     session.close()
 
 

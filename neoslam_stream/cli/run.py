@@ -283,9 +283,12 @@ def cmd_view(args: argparse.Namespace) -> int:
     except FileNotFoundError as exc:
         return error(exc, 2)
     out = args.save or str(Path(args.run_dir) / "view.rrd")
+    camera = f"{st.images} camera frames ({st.images_dropped} skipped)"
+    if not st.images and not (Path(args.run_dir) / "camera.zip").exists():
+        camera += " (the run folder has no camera.zip: runs keep one unless source.camera_log_s is 0)"
     print(f"viewed {args.run_dir}: {st.templates} templates ({st.loop_closures} loop closures), "
-          f"{st.poses} poses, {st.images} camera frames ({st.images_dropped} skipped), "
-          f"rates of {len(st.stages)} stages; recording: {out} (open it with `rerun {out}`)")
+          f"{st.poses} poses, {camera}, {st.log_lines} log lines, rates of {len(st.stages)} stages; "
+          f"recording: {out} (open it with `rerun {out}`)")
     return 0
 
 

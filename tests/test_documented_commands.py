@@ -89,6 +89,8 @@ VALIDATE = {
     "-p domain_id=0 -p 'connect=[\"tcp/robot:7447\"]'",
     "neoslam run --ros2-out rmw --ros2-connect tcp/localhost:7447",
     "neoslam run --ros2-out bridge --ros2-connect tcp/localhost:7447",
+    "neoslam run --foxglove",
+    "neoslam run --foxglove 0.0.0.0:8765",
 }
 MAKE = {"make run", "make test", "make bench", "make", 'make run ARGS="--max-frames 300"'}
 ELSEWHERE = {
@@ -98,6 +100,9 @@ ELSEWHERE = {
     "RMW_IMPLEMENTATION=rmw_zenoh_cpp": "RViz with rmw_zenoh, run on the ROS 2 side",
     "neoslam router": "a zenoh router that runs until Ctrl-C; tests/test_parts.py runs one on loopback",
     "pip install '.[view]'": "the Makefile's setup installs the [test] extra, which holds the viewer's rerun-sdk",
+    "pip install 'neoslam-stream[foxglove]'": "the Makefile's setup installs the [test] extra, which holds foxglove-sdk",
+    "neoslam view runs/monday --foxglove": "a server that runs until Ctrl-C; tests/test_foxglove.py serves a "
+                                           "finished run the same way (with --duration)",
     "pip install .": "tests/test_packaging.py installs the wheel in a fresh venv and runs it",
     "pip install torch==2.13.0": "the Makefile's setup step, run by every `make run` / `make test`",
 }

@@ -148,7 +148,7 @@ def served_run(tmp_path_factory):
         logged.set()
 
     async def both():
-        stalled = asyncio.create_task(fc.stall(f"ws://127.0.0.1:{port}", hold_s=8.0))
+        stalled = asyncio.create_task(fc.stall(f"ws://127.0.0.1:{port}", hold_s=2.0))  # hangs, then leaves mid-run
         got = await fc.collect(f"ws://127.0.0.1:{port}", until_s=400.0, publish_attempt=True,
                                on_first=lambda: threading.Timer(1.0, a_log_line).start())
         await stalled

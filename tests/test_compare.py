@@ -44,4 +44,5 @@ def test_compare_runs_every_pipeline_on_the_same_frames_and_shares_common_stages
     assert np.array_equal(mine[:, 0], paper[:, 0]) and np.array_equal(mine[:, 5], paper[:, 5])
     assert np.all(mine[:, 3] >= paper[:, 3])
     printed = capsys.readouterr().out
-    assert "NeoSLAM (paper)" in printed and "RatSLAM" in printed and "within 0.5 m" in printed
+    # a column per pipeline, its name over two lines: "NeoSLAM" above "(paper)"
+    assert "(paper)" in printed and "RatSLAM" in printed and "within 0.5 m" in printed

@@ -13,7 +13,7 @@ def _table(title: str, caption: str | None = None) -> Any:
     from rich.table import Table
 
     return Table(title=title, caption=caption, box=box.SIMPLE_HEAD, pad_edge=False, padding=(0, 1, 0, 0),
-                 caption_justify="left", title_justify="left")
+                 caption_justify="left", title_justify="left", min_width=len(title))
 
 
 def summary_table(report: dict[str, Any]) -> Any:
@@ -138,7 +138,7 @@ def compare_tables(table: dict, radius: float = 1.0) -> tuple[Any, Any]:
     def cell(v: Any) -> str:
         return "n/a" if v is None else figure(v) if isinstance(v, float) else str(v)
 
-    t = _table(f"NeoSLAM (default, paper) vs RatSLAM, same stream; closures correct within {radius:g} m",
+    t = _table(f"The same stream; a closure is correct within {radius:g} m",
                "n/a: not measured in this run (no ground truth, or no revisit to recall); -: does not "
                "apply; APE on map: every frame on the final map (trajectory_map.tum)")
     t.add_column("", no_wrap=True, min_width=max(len(short) for _, short in COLUMNS))

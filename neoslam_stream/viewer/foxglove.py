@@ -385,6 +385,8 @@ class FoxgloveView:
             for topic in sorted(self.changed):
                 if not force and not again and now - self.sent_at.get(topic, 0.0) < STATE_PERIOD_S:
                     continue
+                if not self.channels[topic].has_sinks():  # nobody watches it: built when someone does
+                    continue
                 self.changed.discard(topic)
                 self.sent_at[topic] = now
                 self._send(topic, self._map() if topic == "/neoslam/map" else self._poses(topic))

@@ -32,8 +32,8 @@ from .algorithms.ratslam.visual_odometry import VisualOdometryConfig
 from .algorithms.spatial_view import SpatialViewConfig
 from .runtime.config import ConfigError, RunConfig, merge_config, parse_yaml_config, validate_config
 
-__all__ = ["ConfigError", "DEFAULT_BASE", "FullRunConfig", "Ros2OutConfig", "config_data", "config_model",
-           "load_config", "packaged_configs", "packaged_config_text"]
+__all__ = ["ConfigError", "DEFAULT_BASE", "FoxgloveConfig", "FullRunConfig", "Ros2OutConfig", "config_data",
+           "config_model", "load_config", "packaged_configs", "packaged_config_text"]
 
 #: what a config file that names no ``base:`` is applied on top of
 DEFAULT_BASE = "default"
@@ -72,6 +72,30 @@ class Ros2OutConfig(BaseModel):
                 "path_max_poses": self.path_max_poses}
 
 
+class FoxgloveConfig(BaseModel):
+    """The run served to Foxglove (or Lichtblick) over the Foxglove WebSocket protocol
+    (docs/foxglove.md), by a viewer process attached to the run like ``neoslam view``.
+
+    ``listen``: ``HOST:PORT`` to serve on (None: not served; ``--foxglove`` sets it, loopback by
+    default); the run's first frame waits up to ``wait_for_client_s`` for a client to subscribe
+    (0: it does not wait), so that it sees the whole run; the camera at most ``image_hz`` frames a
+    second, as JPEG of at most ``image_max_side`` pixels; while served, the experience map
+    publishes its (relaxed) map at most every ``map_period_s`` of source time."""
+
+    model_config = {"extra": "forbid"}
+
+    listen: str | None = Field(None, pattern=r"^[^\s:]+:\d{1,5}$")
+    wait_for_client_s: float = Field(30.0, ge=0)
+    image_hz: float = Field(4.0, gt=0, le=60)
+    image_max_side: int = Field(640, ge=32)
+    jpeg_quality: int = Field(75, ge=10, le=100)
+    map_period_s: float = Field(1.0, gt=0)
+    #: the trajectory and ground-truth paths hold at most about this many poses (evenly thinned)
+    path_max_poses: int = Field(2000, ge=2)
+    #: messages buffered per client (the SDK's message_backlog_size): a slower client loses the oldest
+    backlog: int = Field(1024, ge=16)
+
+
 class FullRunConfig(RunConfig):
     """The runtime's sections plus every algorithm's (defaults = the paper's / reference code's)."""
 
@@ -88,6 +112,7 @@ class FullRunConfig(RunConfig):
     #: wheel: odometry from the source; visual: RatSLAM's visual odometry stage
     odometry: str = Field("wheel", pattern="^(wheel|visual)$")
     ros2_out: Ros2OutConfig = Field(default_factory=Ros2OutConfig)
+    foxglove: FoxgloveConfig = Field(default_factory=FoxgloveConfig)
     #: what you know about your robot and its world (speed, shortest loop, area): the physical
     #: quantities from which the calibrated decisions take their scales (docs/mapping.md)
     platform: PlatformConfig = Field(default_factory=PlatformConfig)

@@ -49,6 +49,7 @@ def test_compare_runs_every_pipeline_on_the_same_frames_and_shares_common_stages
     assert table["neoslam"]["loop_re_recognitions"] == int(mine[:, 3].sum()) > 0
     assert table["neoslam_paper"]["loop_re_recognitions"] == int(paper[:, 3].sum())
     printed = capsys.readouterr().out
-    assert "NeoSLAM (paper)" in printed and "RatSLAM" in printed and "within 0.5 m" in printed
+    # a column per pipeline, its name over two lines: "NeoSLAM" above "(paper)"
+    assert "(paper)" in printed and "RatSLAM" in printed and "within 0.5 m" in printed
     assert (f"re-recognitions of a place just passed (not loop closures): NeoSLAM (default) "
             f"{int(mine[:, 3].sum())}, NeoSLAM (paper) {int(paper[:, 3].sum())}, RatSLAM") in printed

@@ -94,6 +94,8 @@ VALIDATE = {
     "neoslam run --source camera -p device=0",
     "neoslam run --source camera -p url=rtsp://192.168.1.64:554/stream1",
     "neoslam run --source zenoh -p key=robot1/camera -p 'listen=[\"tcp/0.0.0.0:7450\"]'",
+    "neoslam run --foxglove",
+    "neoslam run --foxglove 0.0.0.0:8765",
 }
 MAKE = {"make run", "make test", "make bench", "make", 'make run ARGS="--max-frames 300"'}
 ELSEWHERE = {
@@ -105,6 +107,9 @@ ELSEWHERE = {
     "neoslam camera": "reads a camera on the robot until Ctrl-C; tests/test_sources_camera.py runs it on an "
                       "MJPEG stream into a zenoh source, with the options the documents name",
     "pip install '.[view]'": "the Makefile's setup installs the [test] extra, which holds the viewer's rerun-sdk",
+    "pip install 'neoslam-stream[foxglove]'": "the Makefile's setup installs the [test] extra, which holds foxglove-sdk",
+    "neoslam view runs/monday --foxglove": "a server that runs until Ctrl-C; tests/test_foxglove.py serves a "
+                                           "finished run the same way (with --duration)",
     "pip install .": "tests/test_packaging.py installs the wheel in a fresh venv and runs it",
     "pip install torch==2.13.0": "the Makefile's setup step, run by every `make run` / `make test`",
     "pip install evo": "evo, a GPL tool kept outside the package (its own environment); tests/test_evo.py runs it "

@@ -228,3 +228,36 @@ def test_actions_without_odometry_are_refused_by_the_topic_schema():
                                                 "vrot": 0.0, "dt": 1.0})
     with pytest.raises(MessageError, match="not finite"):
         encode(nan)
+
+
+def test_a_viewed_node_publishes_its_map_now_and_then_and_the_recorder_keeps_the_final_one(tmp_path):
+    """``map_period_s`` (a run served to Foxglove): the map's nodes and links (no export) at most that
+    often in source time and only when the map changed; the recorder writes map.json from the final."""
+    import json
+
+    from neoslam_stream.nodes.ratslam import ExperienceMapNode
+    from neoslam_stream.nodes.recorder import RecorderNode
+    from neoslam_stream.runtime.messages import decode, encode
+
+    st = ExperienceMapNode(map_period_s=2.0, exp_initial_em_deg=0, exp_loops=0)
+    rec = RecorderNode()
+    rec.run_dir = str(tmp_path)
+    maps = []
+    steps = [(0, CREATE_NODE, 0, 0), (1, 0, 0, 0), (2, 0, 0, 0), (3, CREATE_NODE, 0, 1), (4, 0, 1, 1),
+             (5, CREATE_NODE, 1, 2), (6, CREATE_EDGE, 2, 0)]
+    for args in steps:
+        for topic, msg in st.process("pose_cells/action", _action(*args)):
+            rec.process(topic, decode(encode(msg)))
+            if topic == "experience_map/map":
+                maps.append(decode(encode(msg)))
+    # at stamp 0 (a first experience), 3 (a second, 3 s later), 5 (a third: 2 s later), 6 is too soon
+    assert [m.stamp for m in maps] == [0.0, 3.0, 5.0]
+    assert all("export" not in m.data for m in maps)
+    assert [len(m["nodes"]) for m in maps] == [1, 2, 3] and maps[-1]["links"].tolist() == [[0, 1], [1, 2]]
+    (topic, final), = st.flush()
+    rec.process(topic, decode(encode(final)))
+    rec.flush()
+    saved = json.loads((tmp_path / "map.json").read_text())
+    assert len(saved["links"]) == 3  # the final map's, the loop link included
+    plain = ExperienceMapNode(exp_initial_em_deg=0, exp_loops=0)  # by default, no map before the end
+    assert [t for t, _ in plain.process("pose_cells/action", _action(0, CREATE_NODE, 0, 0))] == ["experience_map/pose"]

@@ -39,6 +39,7 @@ def test_wheel_holds_one_namespace_and_its_configs(wheel):
     for cfg in ("default", "irat2011", "stlucia", "robotarium", "fiu_lake", "emulate"):
         assert f"neoslam_stream/configs/{cfg}.yaml" in names
     assert "neoslam_stream/algorithms/spatial_view.py" in names and "neoslam_stream/nodes/recorder.py" in names
+    assert "neoslam_stream/viewer/foxglove_layout.json" in names  # the Foxglove layout (docs/foxglove.md)
 
 
 def test_fresh_venv_runs_from_any_directory(wheel, tmp_path):

@@ -113,6 +113,25 @@ def test_view_of_a_finished_run_records_its_files(tmp_path, monkeypatch, capsys)
         assert got == pytest.approx(rates)
 
 
+def test_view_of_a_finished_run_records_its_camera_and_log_lines(tmp_path, capsys):
+    from neoslam_stream.runtime.camera_log import CameraLog
+
+    _run_folder(tmp_path / "run")
+    cam = CameraLog(period_s=1.0)
+    for f in range(6):  # a frame every 0.5 s: every second one kept, frames 0, 2, 4
+        cam.add(f, 0.5 * f, np.full((24, 32, 3), 40 * f, np.uint8))
+    cam.write(tmp_path / "run")
+    (tmp_path / "run" / "log.jsonl").write_text(json.dumps(
+        {"t_s": 0.5, "t": 1.7e9, "level": "WARNING", "process": "source", "name": "neoslam.source",
+         "message": "no odometry.tum"}) + "\n")
+    out = tmp_path / "out.rrd"
+    assert main(["view", str(tmp_path / "run"), "--save", str(out)]) == 0
+    assert "3 camera frames" in capsys.readouterr().out
+    rec = read_rrd(out)
+    assert _column(rec["/camera/image"], "frame") == [0, 2, 4]
+    assert any("no odometry.tum" in str(v) for v in _column(rec["/log"], "text"))
+
+
 def test_view_skips_a_damaged_file_and_shows_the_rest(tmp_path, caplog):
     want = _run_folder(tmp_path / "run")
     (tmp_path / "run" / "trajectory.tum").write_text("0.0 1 2\n")  # too few columns

@@ -21,22 +21,42 @@ def platform_lines(cfg: Any) -> list[str]:
     return lines
 
 
-def print_summary(report: dict[str, Any]) -> None:
-    """report.json as one table (a row per stage) and the run's rates, losses and folder."""
-    from rich.console import Console
+def _table(title: str, caption: str | None = None) -> Any:
+    """A compact table (no vertical rules, one space between columns): 80 columns show whole names
+    and every value (tests/test_tables.py)."""
+    from rich import box
     from rich.table import Table
 
-    con = Console()
-    t = Table(title=f"run {report.get('run')} ({report.get('topology')}, {report.get('mode')})")
-    for col in ("stage", "processed", "tau p50 ms", "tau p95 ms", "dropped", "errors"):
-        t.add_column(col, justify="right" if col != "stage" else "left")
-    for name, st in report.get("stages", {}).items():
+    return Table(title=title, caption=caption, box=box.SIMPLE_HEAD, pad_edge=False, padding=(0, 1, 0, 0),
+                 caption_justify="left", title_justify="left", min_width=len(title))
+
+
+def summary_table(report: dict[str, Any]) -> Any:
+    """report.json's stages as a table, a row per stage."""
+    from ..runtime.monitor import figure
+
+    stages = report.get("stages", {})
+    t = _table(f"run {report.get('run')} ({report.get('topology')}, {report.get('mode')})",
+               "tau: service time per message (ms); dropped: evicted from its queue or lost on the way; "
+               "errors: inputs refused")
+    t.add_column("stage", no_wrap=True, min_width=max([5, *map(len, stages)]))
+    for col in ("processed", "tau p50", "tau p95", "dropped", "errors"):
+        t.add_column(col, justify="right", no_wrap=True)
+    for name, st in stages.items():
         if st.get("missing"):
             t.add_row(name, "missing", "", "", "", "")
             continue
-        t.add_row(name, str(st["processed"]), f"{st['tau_p50_ms']:.1f}", f"{st['tau_p95_ms']:.1f}",
+        t.add_row(name, str(st["processed"]), figure(st["tau_p50_ms"]), figure(st["tau_p95_ms"]),
                   str(st["dropped"]), str(st["errors"]))
-    con.print(t)
+    return t
+
+
+def print_summary(report: dict[str, Any]) -> None:
+    """report.json as one table (a row per stage) and the run's rates, losses and folder."""
+    from rich.console import Console
+
+    con = Console()
+    con.print(summary_table(report))
     fp = report.get("f_pipeline_predicted")
     loss = report.get("loss")
     # a loss that was not measured is said so: never a 0 that nobody counted
@@ -129,30 +149,51 @@ def print_evaluation(ev: dict[str, Any]) -> None:
     print("evaluation.json and map.png written")
 
 
+def compare_tables(table: dict, radius: float = 1.0) -> tuple[Any, Any]:
+    """compare_runs' table, a column per pipeline and a row per figure (n/a: not measurable in this
+    run; -: does not apply), and each pipeline's per-stage latency, a row per stage."""
+    from ..evaluation.compare import BRANCHES, COLUMNS
+    from ..runtime.monitor import figure
+
+    def header(name: str, row: dict) -> str:  # "NeoSLAM (default)" on two lines
+        label = str(row.get("label", name)).replace(" (", "\n(")
+        return label + ("\n= default" if row.get("same_as_default") else "")
+
+    def cell(v: Any) -> str:
+        return "n/a" if v is None else figure(v) if isinstance(v, float) else str(v)
+
+    t = _table(f"The same stream; a closure is correct within {radius:g} m",
+               "n/a: not measured in this run (no ground truth, or no revisit to recall); -: does not "
+               "apply; APE on map: every frame on the final map (trajectory_map.tum)")
+    t.add_column("", no_wrap=True, min_width=max(len(short) for _, short in COLUMNS))
+    for name, row in table.items():
+        t.add_column(header(name, row), justify="right", no_wrap=True)
+    for key, short in COLUMNS:
+        t.add_row(short, *[cell(row.get(key)) if key in row or name != "odometry" else "-"
+                           for name, row in table.items()])
+    prefixes = {key: prefix for key, _label, _sub, prefix in BRANCHES}
+    per_stage: dict[str, dict[str, Any]] = {}
+    for name, row in table.items():
+        for stage, tau in (row.get("stage_tau_p50_ms") or {}).items():
+            p = prefixes.get(name, "")
+            per_stage.setdefault(stage[len(p):] if p and stage.startswith(p) else stage, {})[name] = tau
+    branches = [n for n, row in table.items() if row.get("stage_tau_p50_ms")]
+    lat = _table("per-stage latency (tau p50, ms)")
+    lat.add_column("stage", no_wrap=True, min_width=max([5, *map(len, per_stage)]))
+    for name in branches:
+        lat.add_column(header(name, table[name]), justify="right", no_wrap=True)
+    for stage, taus in per_stage.items():
+        lat.add_row(stage, *["-" if taus.get(n) is None else figure(taus[n]) for n in branches])
+    return t, lat
+
+
 def print_compare(table: dict, radius: float = 1.0) -> None:
-    """compare_runs' table (a row per pipeline) and each pipeline's per-stage latency."""
+    """The comparison's two tables (:func:`compare_tables`)."""
     from rich.console import Console
-    from rich.table import Table
 
-    from ..evaluation.compare import COLUMNS
-
-    t = Table(title=f"NeoSLAM (default, paper) vs RatSLAM, same stream; closures correct within {radius:g} m")
-    t.add_column("")
-    for _key, short in COLUMNS:
-        t.add_column(short, justify="right")
-    for name, row in table.items():
-        label = row.get("label", name) + (" = default" if row.get("same_as_default") else "")
-        t.add_row(label, *[("" if row.get(c) is None else f"{row[c]:.3f}" if isinstance(row.get(c), float)
-                            else str(row[c])) for c, _short in COLUMNS])
     con = Console()
-    con.print(t)
-    lat = Table(title="per-stage latency (tau p50, ms)")
-    lat.add_column("pipeline")
-    lat.add_column("stages")
-    for name, row in table.items():
-        taus = row.get("stage_tau_p50_ms") or {}
-        lat.add_row(row.get("label", name), ", ".join(f"{s}: {v:.1f}" for s, v in taus.items() if v is not None))
-    con.print(lat)
+    for t in compare_tables(table, radius):
+        con.print(t)
 
 
 def error(message: Any, code: int) -> int:

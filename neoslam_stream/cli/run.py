@@ -17,6 +17,8 @@ from .report import error, platform_lines, print_evaluation, print_summary
 
 #: what `neoslam run` runs with no --config
 DEFAULT_CONFIG = "default"
+#: where --foxglove serves when it names no address: this machine only
+FOXGLOVE_DEFAULT = "127.0.0.1:8765"
 
 
 def _source_params(pairs: list[str]) -> dict[str, Any]:
@@ -125,6 +127,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "(repeatable; bus.router_listen)")
     p.add_argument("--view", action="store_true",
                    help="show the run live in a rerun viewer (recorded to RUN_DIR/view.rrd)")
+    flags.add("--foxglove", path="foxglove.listen", nargs="?", const=FOXGLOVE_DEFAULT, metavar="HOST:PORT",
+              help=f"serve the run live to Foxglove / Lichtblick over the Foxglove WebSocket protocol on "
+                   f"HOST:PORT (default {FOXGLOVE_DEFAULT}: this machine only; docs/foxglove.md)")
     p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("view", help="show a run (live or finished) in a rerun viewer",
@@ -138,6 +143,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--duration", type=float, help="stop watching a live run after this many seconds")
     p.add_argument("--wait", type=float, default=0.0,
                    help="wait this many seconds for the run to start (endpoints.json)")
+    p.add_argument("--foxglove", nargs="?", const=FOXGLOVE_DEFAULT, metavar="HOST:PORT",
+                   help=f"serve the run to Foxglove / Lichtblick instead (Foxglove WebSocket protocol, default "
+                        f"{FOXGLOVE_DEFAULT}): live while it runs, else its files played again once a "
+                        f"client subscribed, then kept until Ctrl-C or --duration (docs/foxglove.md)")
+    p.add_argument("--speed", type=float, default=1.0,
+                   help="with --foxglove, a finished run plays at this many times its source time (0: at once)")
     p.set_defaults(func=cmd_view)
 
     p = sub.add_parser("monitor", help="attach a live table to a running pipeline",
@@ -160,16 +171,35 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=cmd_router)
 
 
-def _start_viewer(cfg: FullRunConfig, args: argparse.Namespace) -> tuple[Any, str]:
-    """``run --view``: the viewer as a child process (``neoslam view RUN_DIR``) that attaches as
-    soon as the run's router is up; the run folder is fixed here so that both know it."""
+def _start_viewer(cfg: FullRunConfig, args: argparse.Namespace, *extra: str) -> tuple[Any, str]:
+    """``run --view`` / ``run --foxglove``: a viewer as a child process (``neoslam view RUN_DIR
+    [extra]``) that attaches as soon as the run's router is up; the run folder is fixed here so
+    that both know it."""
     import subprocess
 
     from ..runtime.topology import make_run_dir
 
     _, run_dir = make_run_dir(cfg, args.out)
     return subprocess.Popen([sys.executable, "-m", "neoslam_stream.cli", "view", str(run_dir),
-                             "--wait", "120"]), str(run_dir)
+                             "--wait", "120", *extra]), str(run_dir)
+
+
+def _foxglove_served(run_dir: Path, report: dict[str, Any]) -> str:
+    """What the run's Foxglove server served (foxglove.json), into report.json as ``foxglove``;
+    one line for the summary."""
+    from ..runtime.report import write_report
+    from ..viewer import FOXGLOVE_FILE
+
+    try:
+        served = json.loads((run_dir / FOXGLOVE_FILE).read_text())
+    except (OSError, ValueError):
+        return "foxglove: the server wrote no foxglove.json (it did not start?)"
+    report["foxglove"] = served
+    write_report(run_dir / "report.json", report)
+    return (f"foxglove: {served.get('url')}, {served.get('clients', 0)} clients; camera {served.get('images', 0)} "
+            f"frames sent, {served.get('images_thinned', 0)} thinned, {served.get('images_dropped', 0)} dropped; "
+            f"{served.get('poses', 0)} poses, {served.get('loop_closures', 0)} loop closures, "
+            f"{served.get('messages_dropped', 0)} other messages dropped")
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -181,23 +211,39 @@ def cmd_run(args: argparse.Namespace) -> int:
         return error(f"--oracle-templates replaces the front end of the neoslam pipeline; it cannot run "
                      f"with --pipeline {args.pipeline}", 2)
     cfg = load_run_config(args)
-    viewer = None
+    if cfg.foxglove.listen:
+        from ..viewer.foxglove import NEEDS, parse_listen, sdk_available
+
+        if not sdk_available():
+            return error(NEEDS, 2)
+        try:
+            parse_listen(cfg.foxglove.listen)
+        except ValueError as exc:
+            return error(exc, 2)
+    viewers = []
     if args.view:
         viewer, args.out = _start_viewer(cfg, args)
+        viewers.append(viewer)
+    if cfg.foxglove.listen:  # the first frame waits for the server (and its first client) to attach
+        cfg.run.wait_for = [*cfg.run.wait_for, "foxglove"]
+        cfg.run.wait_for_s = max(cfg.run.wait_for_s, cfg.foxglove.wait_for_client_s + 30.0)
+        viewer, args.out = _start_viewer(cfg, args, "--foxglove", cfg.foxglove.listen)
+        viewers.append(viewer)
     try:
         result = run(cfg, args.out, args.resume, args.map)
     except BaseException as exc:
-        if viewer is not None:  # the run did not end normally: no report.json will end the viewer
+        for viewer in viewers:  # the run did not end normally: no report.json will end the viewer
             viewer.terminate()
             viewer.wait(10)
         if isinstance(exc, RunError):
             return error(exc, 1)
         raise
-    if viewer is not None:  # it ends by itself once report.json is there and the map is logged
+    for viewer in viewers:  # each ends by itself once report.json is there and the map is shown
         try:
             viewer.wait(60)
         except subprocess.TimeoutExpired:
             viewer.terminate()
+    served = _foxglove_served(result.run_dir, result.report) if cfg.foxglove.listen else ""
     if "part" in result.report:  # one host's share of a split run: the report is the other host's
         here = [*result.report["part"], *(["the source"] if result.report.get("source_here") else [])]
         print(f"run {result.report['run']}: {', '.join(here)} done here "
@@ -205,6 +251,8 @@ def cmd_run(args: argparse.Namespace) -> int:
               f"with the last stage and the monitor (part.json: {result.run_dir / 'part.json'})")
         return 128 + (result.signal or 2) if result.interrupted else 0
     print_summary(result.report)
+    if served:
+        print(served)
     run_dir = result.run_dir
     if cfg.run.pipeline == "oracle" and not (run_dir / "groundtruth.tum").exists():
         return error("--oracle-templates needs a source with ground truth (this one published none, so "
@@ -230,17 +278,37 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def cmd_view(args: argparse.Namespace) -> int:
-    from ..viewer import view
+    from ..viewer import serve_foxglove, view
 
+    if args.foxglove:
+        import signal
+
+        def _stop(*_: Any) -> None:  # SIGTERM ends the server as Ctrl-C does: foxglove.json says what it served
+            raise KeyboardInterrupt
+
+        signal.signal(signal.SIGTERM, _stop)
+        try:
+            st = serve_foxglove(args.run_dir, args.foxglove, args.speed, args.duration, args.wait)
+        except (FileNotFoundError, ValueError) as exc:
+            return error(exc, 2)
+        except RuntimeError as exc:  # the SDK could not bind: the port is taken, the address unknown
+            return error(f"cannot serve on {args.foxglove}: {exc}", 1)
+        print(f"served {args.run_dir}: {st.poses} poses, {st.templates} templates ({st.loop_closures} loop "
+              f"closures), {st.images} camera frames ({st.images_thinned} thinned, {st.images_dropped} dropped), "
+              f"{st.log_lines} log lines, stats of {len(st.stages)} stages")
+        return 0
     try:
         st = view(args.run_dir, save=args.save, window=False if (args.save or args.no_window) else None,
                   duration=args.duration, wait_s=args.wait)
     except FileNotFoundError as exc:
         return error(exc, 2)
     out = args.save or str(Path(args.run_dir) / "view.rrd")
+    camera = f"{st.images} camera frames ({st.images_dropped} skipped)"
+    if not st.images and not (Path(args.run_dir) / "camera.zip").exists():
+        camera += " (the run folder has no camera.zip: runs keep one unless source.camera_log_s is 0)"
     print(f"viewed {args.run_dir}: {st.templates} templates ({st.loop_closures} loop closures), "
-          f"{st.poses} poses, {st.images} camera frames ({st.images_dropped} skipped), "
-          f"rates of {len(st.stages)} stages; recording: {out} (open it with `rerun {out}`)")
+          f"{st.poses} poses, {camera}, {st.log_lines} log lines, rates of {len(st.stages)} stages; "
+          f"recording: {out} (open it with `rerun {out}`)")
     return 0
 
 

@@ -27,9 +27,11 @@ def synthetic_walls(run_dir: Path) -> np.ndarray | None:
 
 def plot_map(run_dir: Path, gt: np.ndarray, traj: np.ndarray, mp: dict, result: dict,
              walls: np.ndarray | None = None) -> None:
-    """``map.png``: ground truth (black), odometry (red) and the experience map (blue nodes and
-    links), each aligned onto the ground truth by SE(2) Umeyama, loop closures as green discs at
-    their true positions, and the world's walls (grey) when known."""
+    """``map.png``: ground truth (black, on top), odometry (red) and the final experience map (blue
+    nodes and links, placed by the online trajectory's fit), each aligned onto the ground truth by
+    SE(2) Umeyama, loop closures as hollow green rings at their true positions (the ground truth
+    shows through), the world's walls (grey) when known; the title gives both trajectory errors,
+    online (trajectory.tum) and on the final map (trajectory_map.tum)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -48,9 +50,9 @@ def plot_map(run_dir: Path, gt: np.ndarray, traj: np.ndarray, mp: dict, result: 
         if rows.size:
             lc = rows[rows[:, 3] > 0]
             _, gi = associate(lc[:, 1], gt[:, 0], max_dt=1.0)
-            ax.plot(gt[gi, 1], gt[gi, 2], "o", color="limegreen", ms=7, alpha=0.25, mec="none",
-                    label="loop closure (true position)")
-    ax.plot(gt[:, 1], gt[:, 2], "k-", lw=1.5, label="ground truth")
+            ax.plot(gt[gi, 1], gt[gi, 2], "o", ms=7, mfc="none", mec="limegreen", mew=0.8, alpha=0.6,
+                    label="loop closure (true position)", zorder=1)
+    ax.plot(gt[:, 1], gt[:, 2], "k-", lw=1.2, label="ground truth", zorder=4)
     odo_file = run_dir / "odometry.tum"
     if odo_file.exists():
         odo = read_tum(odo_file)
@@ -65,11 +67,15 @@ def plot_map(run_dir: Path, gt: np.ndarray, traj: np.ndarray, mp: dict, result: 
             ax.plot([a[0], b[0]], [a[1], b[1]], "b-", lw=0.6)
     if nodes:
         pts = np.array(list(nodes.values()))
-        ax.plot(pts[:, 0], pts[:, 1], "b.", ms=3, label="experience map")
+        ax.plot(pts[:, 0], pts[:, 1], "b.", ms=3, label="experience map (final)")
     ax.set_aspect("equal")
     ax.legend(loc="best", fontsize=8)
-    ape_m = result.get("trajectory_ape", {}).get("mean_m", float("nan"))
-    ax.set_title(f"{run_dir.name}: APE mean {ape_m:.2f} m")
+    online = result.get("trajectory_ape", {}).get("mean_m")
+    final = (result.get("map_trajectory_ape") or {}).get("mean_m")
+    parts = [f"online {online:.2f} m" if online is not None else "online n/a"]
+    if final is not None:
+        parts.append(f"on the final map {final:.2f} m")
+    ax.set_title(f"{run_dir.name}: trajectory APE mean, {', '.join(parts)}", fontsize=10)
     fig.savefig(run_dir / "map.png", dpi=110, bbox_inches="tight")
     plt.close(fig)
 

@@ -91,8 +91,10 @@ def _backend_specs(cfg: FullRunConfig, specs: list[NodeSpec]) -> None:
         specs.append(NodeSpec("visual_odometry", f"{RATSLAM_NODES}:make_visual_odometry_node",
                               {**cfg.visual_odometry.model_dump(), "speed_mps": cfg.platform.speed_mps}))
     specs.append(NodeSpec("pose_cells", f"{RATSLAM_NODES}:make_pose_cells_node", cfg.pose_cells.model_dump()))
+    # served to Foxglove: the map (relaxed) now and then, not only at the end (docs/foxglove.md)
+    map_period = {"map_period_s": cfg.foxglove.map_period_s} if cfg.foxglove.listen else {}
     specs.append(NodeSpec("experience_map", f"{RATSLAM_NODES}:make_experience_map_node",
-                          cfg.experience_map.model_dump()))
+                          {**cfg.experience_map.model_dump(), **map_period}))
     ros = cfg.ros2_out
     specs.append(NodeSpec("recorder", RECORDER, recorder_params(cfg), host="experience_map",
                           capacity=dict(RECORDER_CAPACITY), observer=True))
@@ -181,9 +183,9 @@ def _branch(specs: list[NodeSpec], prefix: str, remap: dict[str, str], subdir: s
 
 def paper_profile_config(cfg: FullRunConfig) -> FullRunConfig:
     """``cfg`` with every algorithm section of the paper's profile (``configs/paper.yaml``): the
-    run, bus and source sections, and the odometry choice, stay ``cfg``'s."""
+    run, bus and source sections, the odometry choice and the Foxglove viewer stay ``cfg``'s."""
     paper = load_config(PAPER_PROFILE)
-    algo = set(type(cfg).model_fields) - set(RunConfig.model_fields) - {"odometry"}
+    algo = set(type(cfg).model_fields) - set(RunConfig.model_fields) - {"odometry", "foxglove"}
     return cfg.model_copy(update={k: getattr(paper, k) for k in algo})
 
 

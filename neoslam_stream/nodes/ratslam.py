@@ -159,17 +159,21 @@ class PoseCellsNode(Node):
 class ExperienceMapNode(Node):
     """Experience map in a node: ``pose_cells/action`` (with its odometry) -> ``experience_map/pose``
     per message, and ``experience_map/map`` (the whole map) at the end of the run. The recorder
-    node writes them to the run folder. Parameters: :class:`ExperienceMapConfig`'s."""
+    node writes them to the run folder. Parameters: :class:`ExperienceMapConfig`'s, and
+    ``map_period_s`` (> 0: also the map's nodes and links, without the export, at most this often
+    in source time when it changed, for a viewer that redraws the relaxed map; 0: only at the end)."""
 
     inputs = (POSE_CELL_ACTION,)
     outputs = (EXPERIENCE_POSE, EXPERIENCE_MAP)
 
-    def __init__(self, **params: Any) -> None:
+    def __init__(self, map_period_s: float = 0.0, **params: Any) -> None:
         super().__init__()
         self.em = ExperienceMap(ExperienceMapConfig(**params))
         #: the last frame integrated, and its stamp (-1: none yet)
         self.last_frame = -1
         self.last_stamp = 0.0
+        self.map_period_s = float(map_period_s)
+        self._map_sent: tuple[float, int, int] | None = None  # stamp, experiences, links then
 
     def setup(self) -> None:
         self.em.warm_up()
@@ -187,16 +191,33 @@ class ExperienceMapNode(Node):
         self.last_frame, self.last_stamp = msg.frame, msg.stamp
         # the pose relative to its experience as well, so that the recorder can re-express the
         # whole trajectory on the final, relaxed map (trajectory_map.tum)
-        return [(EXPERIENCE_POSE, msg.derive(EXPERIENCE_POSE, record_data(p)))]
+        out: Output = [(EXPERIENCE_POSE, msg.derive(EXPERIENCE_POSE, record_data(p)))]
+        if self.map_period_s > 0:
+            out.extend(self._map_now(msg.stamp))
+        return out
+
+    def _map_now(self, stamp: float) -> Output:
+        """The map's nodes and links when ``map_period_s`` passed since the last ones and the map
+        changed (an experience or a link more: the relaxation moved it too)."""
+        sizes = (self.em.n_experiences, self.em.n_links)
+        last = self._map_sent
+        if last is not None and (stamp - last[0] < self.map_period_s or last[1:] == sizes):
+            return []
+        self._map_sent = (stamp, *sizes)
+        return [(EXPERIENCE_MAP, Message(EXPERIENCE_MAP, max(self.last_frame, 0), stamp, self._arrays()))]
+
+    def _arrays(self) -> dict[str, np.ndarray]:
+        """The map as arrays: nodes (id, x, y, theta, stamp), links (from, to)."""
+        em = self.em
+        ids = np.asarray(em.ids, dtype=np.float64).reshape(-1, 1)
+        nodes = np.hstack([ids, np.column_stack([em.x, em.y, em.th, em.stamp])]).reshape(-1, 5)
+        links = np.array([lk[:2] for lk in em.links], dtype=np.int64).reshape(-1, 2)
+        return {"nodes": nodes, "links": links}
 
     def flush(self) -> Output:
         ex = self.em.export()
-        nodes = np.array([[n["id"], n["x"], n["y"], n["theta"], n["stamp"]] for n in ex["nodes"]],
-                         dtype=np.float64).reshape(-1, 5)
-        links = np.array([[lk["from"], lk["to"]] for lk in ex["links"]], dtype=np.int64).reshape(-1, 2)
         frame = max(self.last_frame, 0)
-        return [(EXPERIENCE_MAP, Message(EXPERIENCE_MAP, frame, self.last_stamp,
-                                         {"nodes": nodes, "links": links, "export": ex}))]
+        return [(EXPERIENCE_MAP, Message(EXPERIENCE_MAP, frame, self.last_stamp, {**self._arrays(), "export": ex}))]
 
     def new_session(self) -> None:
         self.last_frame, self.last_stamp = -1, 0.0  # the map stays; frame numbers start again

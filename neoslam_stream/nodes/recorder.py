@@ -54,8 +54,8 @@ class RecorderNode(Node):
             self.folder.on_groundtruth(msg.frame, msg["pose"])
         elif topic == EXPERIENCE_POSE:
             self.folder.on_pose(msg.frame, msg.stamp, record_of(MapPose, msg.data))
-        else:
-            self.folder.on_map(msg.data.get("export"))
+        elif msg.data.get("export") is not None:  # the final map (others: a viewer's, arrays only)
+            self.folder.on_map(msg.data["export"])
         return []
 
     def flush(self) -> Output:

@@ -90,6 +90,10 @@ class SourceConfig(Strict):
     rate_multiplier: float = Field(1.0, gt=0)
     max_frames: int | None = Field(None, ge=1)
     duration: float | None = Field(None, gt=0)
+    #: camera.zip in the run folder (camera_log.py): a JPEG every this many seconds of source time
+    #: (0: none), at most ``camera_log_frames`` of them (beyond: thinned evenly)
+    camera_log_s: float = Field(0.5, ge=0)
+    camera_log_frames: int = Field(600, ge=2)
 
 
 class EmulatedConfig(Strict):
@@ -140,6 +144,11 @@ class RunSection(Strict):
     #: a file to write every frame's path through the stages to, as a Chrome / Perfetto trace
     #: (runtime/trace.py; docs/performance.md); None: no trace
     trace: str | None = None
+    #: tools attached to the run (by the name of their liveliness token ``alive/<name>``, e.g. the
+    #: Foxglove viewer of ``neoslam run --foxglove``) that the first frame waits for, at most
+    #: ``wait_for_s`` seconds (then the run starts without them, with a warning)
+    wait_for: list[str] = Field(default_factory=list)
+    wait_for_s: float = Field(30.0, ge=0)
 
 
     @field_validator("nice")

@@ -149,7 +149,8 @@ class RunLayout:
             max_frames=src.max_frames, duration=src.duration, window=self.cfg.bus.window,
             final_topic=self.plan.final_topic, progress=self.cfg.run.live, start_frame=start_frame,
             expected_peers=len(self.order) - 1, wait_topics=list(self.plan.consumed_source_topics),
-            control_token=self.control_token, topics=list(self.plan.topics), epoch=self.epoch)
+            control_token=self.control_token, topics=list(self.plan.topics), epoch=self.epoch,
+            camera_log_s=src.camera_log_s, camera_log_frames=src.camera_log_frames)
 
     def meta(self) -> dict[str, Any]:
         """What the report says about the run's set-up."""

@@ -191,8 +191,10 @@ STATS = Topic("stats", {"stage": Field("str")})
 #: ``token``: the run's secret (see bus.ControlGate); ``target``: one process, or all when absent
 CONTROL = Topic("control", {"command": Field("str"), "token": Field("str", optional=True),
                             "target": Field("str", optional=True)})
+#: one log line of a run's process (runlog.py): its level, process, logger name and text
+LOG = Topic("log", {"level": Field("str"), "process": Field("str"), "name": Field("str"), "message": Field("str")})
 #: the types the codec knows without registration: the sources' and the runtime's own
-RUNTIME_TOPICS = (IMAGE, ODOM, GROUNDTRUTH, STATS, CONTROL)
+RUNTIME_TOPICS = (IMAGE, ODOM, GROUNDTRUTH, STATS, CONTROL, LOG)
 
 #: ``data`` schema per registered message type (None: registered as free-form); the runtime's own
 #: types from the start, every other one by :func:`register_schema` in the process that needs it

@@ -12,6 +12,7 @@ from __future__ import annotations
 import csv
 import json
 import logging
+import math
 import signal
 import threading
 import time
@@ -19,21 +20,42 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from . import runlog
 from .bus import key_for, open_session
 from .collector import FinalTracker, StatsCollector
-from .messages import Topic, register_topics
+from .messages import LOG, Topic, register_topics
 from .report import _json_default, build_report, write_report
 from .trace import TraceWriter
 
+#: the live table's columns after the stage's name, and what they say (its caption)
+LIVE_COLUMNS = ("recv", "done", "Hz", "p50\nms", "p95\nms", "wait\nms", "drop", "err", "cpu\n%", "MB")
+LIVE_CAPTION = ("recv/done: messages received/processed; Hz: done per second; p50/p95: service time tau; "
+                "wait: queueing p50; drop: evicted from the stage's queue; err: refused; MB: memory (PSS)")
+
+
+def figure(value: float) -> str:
+    """A measured figure in at most four characters where it can: three significant digits below
+    1000 (0.42, 12.3, 123), whole numbers above."""
+    v = float(value)
+    if not math.isfinite(v):
+        return str(v)
+    a = abs(v)
+    return f"{v:.0f}" if a >= 99.95 or a == 0 else f"{v:.1f}" if a >= 9.995 else f"{v:.2f}"
+
 
 def stats_table(stats: dict[str, dict[str, Any]], title: str = "neoslam") -> Any:
-    """A rich Table of the current stats (used by the live view and `neoslam monitor`)."""
+    """A rich Table of the current stats (used by the live view and `neoslam monitor`). Compact, so
+    that 80 columns show every stage's whole name and every value: no vertical rules, short
+    headers, figures in at most four characters, what the columns mean in the caption."""
+    from rich import box
     from rich.table import Table
 
-    table = Table(title=title, expand=False)
-    for col in ("stage", "recv", "done", "rate Hz", "tau p50 ms", "tau p95 ms", "queue ms", "drop",
-                "err", "cpu %", "PSS MB"):
-        table.add_column(col, justify="right" if col != "stage" else "left")
+    names = [n for n in stats if n != "source"]
+    table = Table(title=title, caption=LIVE_CAPTION, expand=False, box=box.SIMPLE_HEAD, pad_edge=False,
+                  padding=0, caption_justify="left")
+    table.add_column("stage", no_wrap=True, min_width=max([6, *map(len, names)]))
+    for col in LIVE_COLUMNS:
+        table.add_column(col, justify="right", no_wrap=True)
     now = time.time()
     src = stats.get("source")
     if src is not None:
@@ -48,8 +70,8 @@ def stats_table(stats: dict[str, dict[str, Any]], title: str = "neoslam") -> Any
         active = max(1e-9, now - st.get("started", now))
         drops = sum(i.get("evicted", 0) for i in st.get("inputs", {}).values())
         table.add_row(name, str(st.get("received", 0)), str(st.get("processed", 0)),
-                      f"{st.get('processed', 0) / active:.1f}", f"{st.get('tau_p50_ms', 0):.1f}",
-                      f"{st.get('tau_p95_ms', 0):.1f}", f"{st.get('queue_p50_ms', 0):.1f}", str(drops),
+                      figure(st.get("processed", 0) / active), figure(st.get("tau_p50_ms", 0)),
+                      figure(st.get("tau_p95_ms", 0)), figure(st.get("queue_p50_ms", 0)), str(drops),
                       str(st.get("errors", 0)), f"{st.get('cpu_percent', 0):.0f}",
                       f"{st.get('pss_mb') or st.get('rss_mb', 0):.0f}")
     return table
@@ -165,6 +187,10 @@ def run_monitor(spec: MonitorSpec) -> None:
     run_dir = Path(spec.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
+    # every process's log lines (runlog.py) into log.jsonl; the monitor's own on the bus too
+    log_file = runlog.LogFile(run_dir, t0)
+    subs.append(session.declare_subscriber(key_for(spec.run, str(LOG)), log_file.on_sample))
+    logs = runlog.attach(session, spec.run, "monitor")
     live = None
     if spec.live:
         from rich.live import Live
@@ -214,8 +240,10 @@ def run_monitor(spec: MonitorSpec) -> None:
     report["control_refused_monitor"] = gate.refused
     write_report(run_dir / "report.json", report)
     token.undeclare()
+    runlog.detach(logs)
     for s in subs:
         s.undeclare()
+    log_file.close()
     session.close()
 
 

@@ -29,7 +29,9 @@ from typing import Any
 import numpy as np
 
 from ..tum import write_tum
+from . import runlog
 from .bus import Bus, ControlGate, key_for, open_session, wait_for_peers, wait_for_subscribers
+from .camera_log import CameraLog
 from .messages import Message, MessageError, Topic, decode, encode, register_topics
 from .node import load_factory
 from .source import Source, SourceFrame
@@ -91,6 +93,9 @@ class SourceRunSpec:
     topics: list[Topic] = field(default_factory=list)
     #: the run's epoch (bus.LinkTag): a lossless run split over hosts starts a new one when it rolls back
     epoch: int = 0
+    #: camera.zip: a JPEG every this many seconds of source time (0: none), at most this many
+    camera_log_s: float = 0.5
+    camera_log_frames: int = 600
 
 
 class _Progress:
@@ -228,6 +233,8 @@ class SourceRunner:
         self.pose = (0.0, 0.0, 0.0)
         self.bar: Any = None
         self.bar_task: Any = None
+        self.logs: Any = None
+        self.camera = CameraLog(spec.camera_log_s, spec.camera_log_frames)
 
     # ------------------------------------------------------------------ links and control
     def connect(self) -> None:
@@ -235,6 +242,7 @@ class SourceRunner:
         wait until the run is linked and subscribed, then announce readiness."""
         spec = self.spec
         self.session = open_session(spec.listen, spec.connect, spec.shm)
+        self.logs = runlog.attach(self.session, spec.run, "source")  # the run's log lines, on the bus
         self.bus = bus = Bus(self.session, spec.run, spec.lossless, epoch=spec.epoch)
         bus.subscribe_callback(key_for(spec.run, spec.final_topic), self.progress.on_sample)
         bus.subscribe_callback(key_for(spec.run, "control"), self.on_control)
@@ -404,6 +412,7 @@ class SourceRunner:
             sent.add(topic)
             if topic == "image":
                 self.mark_published(sf.frame)
+                self.camera.add(sf.frame, sf.stamp, sf.image, sf.encoding, sf.compressed)
                 times = self.frame_times
                 if (not times or now - times[-1][1] >= 1.0) and len(times) < 100_000:
                     times.append([sf.frame, now])
@@ -475,9 +484,11 @@ class SourceRunner:
         for name, rows in (("groundtruth.tum", self.gt_rows), ("odometry.tum", self.odo_rows)):
             if rows:
                 write_tum(Path(self.spec.run_dir) / name, rows)
+        self.camera.write(self.spec.run_dir)
         self.publish_stats(final=True)
         time.sleep(0.3)
         self.token.undeclare()
+        runlog.detach(self.logs)
         assert self.bus is not None
         self.bus.close()
         self.session.close()

@@ -31,6 +31,7 @@ from typing import Any
 
 import yaml
 
+from . import runlog
 from .bus import ZENOH_CONFIG_ENV, ZENOH_TX_QUEUE_ENV, key_for, open_session
 from .checkpoint import StateFormatError, check_state_file, cut_dir, latest_complete_cut, load_map_file
 from .children import Children
@@ -42,6 +43,7 @@ from .messages import register_topics
 from .plan import PipelinePlan, RunError, RunResult, group_workers, make_run_dir
 from .procs import monitor_entry, source_entry, worker_entry
 from .report import build_report, mark_status, write_report
+from .runlog import LOG_FILE
 
 # what other modules take from here: the plan and its results, and how queues are sized
 __all__ = ["CONTROL_TOKEN_ENV", "PipelinePlan", "RunError", "RunResult", "Supervisor", "group_workers",
@@ -149,10 +151,11 @@ class Supervisor:
         # the supervisor's own count of the frames that arrived: it outlives a killed monitor
         final_sub = self.session.declare_subscriber(key_for(self.run_id, self.plan.final_topic),
                                                     self.final.on_sample)
-        for name in ("timeline.csv", "stats.jsonl"):  # the monitor appends (it may be restarted)
+        for name in ("timeline.csv", "stats.jsonl", LOG_FILE):  # the monitor appends (it may be restarted)
             (self.run_dir / name).unlink(missing_ok=True)
         if layout.trace_path and layout.is_primary:  # so is the trace (run.trace)
             Path(layout.trace_path).unlink(missing_ok=True)
+        logs = runlog.attach(self.session, self.run_id, "supervisor")  # its log lines on the bus too
         interrupted = False
         self.failure = None
         try:
@@ -168,6 +171,7 @@ class Supervisor:
             # every worker of the run, those of other hosts included (their tokens come through the router)
             children.wait_ready(list(layout.groups), self.cfg.run.startup_timeout)
             if layout.runs_source:
+                self._wait_for_tools()
                 start_frame = self._resume_frame()
                 children.start("source", source_entry, layout.source_spec(start_frame))
             interrupted = self._supervise()
@@ -180,6 +184,7 @@ class Supervisor:
             self._shutdown()
             stats_sub.undeclare()
             final_sub.undeclare()
+            runlog.detach(logs)
             self.session.close()
             signal.signal(signal.SIGINT, old_int)
             signal.signal(signal.SIGTERM, old_term)
@@ -190,6 +195,20 @@ class Supervisor:
             raise RunError(f"{self.failure} (report: {self.run_dir / 'report.json'})")
         return RunResult(self.run_dir, report, interrupted, dict(children.restarts),
                          children.last_signal if interrupted else None)
+
+    def _wait_for_tools(self) -> None:
+        """The tools the first frame waits for (``run.wait_for``: a viewer that must see frame 0),
+        at most ``run.wait_for_s``; a tool that has not attached by then is not waited for."""
+        missing = list(self.cfg.run.wait_for)
+        deadline = time.monotonic() + self.cfg.run.wait_for_s
+        while missing and time.monotonic() < deadline and not self.children.interrupts:
+            alive = self.children.alive_tokens()
+            missing = [n for n in missing if n not in alive]
+            if missing:
+                time.sleep(0.2)
+        if missing:
+            log.warning("starting without %s: not attached to the run after %.0f s", ", ".join(missing),
+                        self.cfg.run.wait_for_s)
 
     # ------------------------------------------------------------------ what a share changes
     def _select_hosted(self) -> None:

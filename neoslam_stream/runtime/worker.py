@@ -29,6 +29,7 @@ from collections import defaultdict, deque
 from dataclasses import dataclass, field
 from typing import Any
 
+from . import runlog
 from .bus import Bus, ControlGate, InputQueue, key_for, open_session, wait_for_peers
 from .checkpoint import StateFormatError, load_map_file, load_state_file
 from .messages import Message, MessageError, Topic, decode, encode, register_topics
@@ -436,11 +437,13 @@ def run_worker(spec: WorkerSpec) -> None:
     # environment's thread budget (procs.set_thread_budget) covers BLAS, OpenMP and numba
     worker.build()
     worker.connect()
+    assert worker.bus is not None
+    logs = runlog.attach(worker.bus.session, spec.run, spec.name)  # the run's log lines, on the bus
     try:
         worker.setup()
     except StateRefused as exc:
         print(f"error: {exc}", file=sys.stderr, flush=True)
-        assert worker.bus is not None
+        runlog.detach(logs)
         worker.bus.close()
         worker.bus.session.close()
         sys.exit(EXIT_STATE_REFUSED)
@@ -457,6 +460,6 @@ def run_worker(spec: WorkerSpec) -> None:
         worker.shutdown()
         if worker.queue is not None:
             worker.queue.close()
-        assert worker.bus is not None
+        runlog.detach(logs)
         worker.bus.close()
         worker.bus.session.close()

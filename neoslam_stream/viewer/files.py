@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import json
 import logging
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -38,9 +39,10 @@ def _read_tum(path: Path) -> np.ndarray:
 
 def log_run_folder(run_dir: str | Path, view: RunView) -> None:
     """Log what a run folder holds: templates.csv, trajectory.tum, groundtruth.tum, odometry.tum,
-    map.json and the per-stage rates of timeline.csv. Each pose is put on the ``frame`` timeline
-    through the stamp -> frame map of templates.csv (the stamps the recorder wrote with the frame
-    numbers), and on ``stamp`` in any case."""
+    map.json, the per-stage rates of timeline.csv, the thinned camera frames of camera.zip and the
+    log lines of log.jsonl. Each pose is put on the ``frame`` timeline through the stamp -> frame
+    map of templates.csv (the stamps the recorder wrote with the frame numbers), and on ``stamp``
+    in any case."""
     run_dir = Path(run_dir)
     templates = _read_csv(run_dir / "templates.csv")
     frame_of: dict[str, int] = {}
@@ -57,12 +59,34 @@ def log_run_folder(run_dir: str | Path, view: RunView) -> None:
     for stamp, x, y, th in _read_tum(run_dir / "odometry.tum"):
         view.odometry_pose(frame_of.get(f"{stamp:.6f}"), stamp, np.array([x, y, th]))
     log_timeline(run_dir / "timeline.csv", view)
+    log_camera_and_log_lines(run_dir, view)
     map_path = run_dir / "map.json"
     if map_path.exists():
         try:
             view.experience_map(json.loads(map_path.read_text()))
         except (ValueError, KeyError, TypeError) as exc:
             log.warning("map.json not shown: %s", exc)
+
+
+def log_camera_and_log_lines(run_dir: Path, view: RunView) -> None:
+    """camera.zip's frames and log.jsonl's lines (either may be missing or damaged: skipped)."""
+    from ..runtime.camera_log import CAMERA_FILE, read_camera_zip
+
+    if (run_dir / CAMERA_FILE).exists():
+        try:
+            for frame, stamp, jpeg in read_camera_zip(run_dir / CAMERA_FILE):
+                view.jpeg(frame, stamp, jpeg)
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:  # damaged: the rest is shown
+            log.warning("%s not shown: %s", run_dir / CAMERA_FILE, exc)
+    path = run_dir / "log.jsonl"
+    lines = path.read_text(errors="replace").splitlines() if path.exists() else []
+    for line in lines:
+        try:
+            r = json.loads(line)
+            if isinstance(r, dict) and r.get("t_s") is not None:
+                view.log_line(float(r["t"]), str(r["level"]), str(r["process"]), str(r["name"]), str(r["message"]))
+        except (ValueError, KeyError, TypeError):
+            continue
 
 
 def timeline_rates(path: Path) -> list[tuple[float, str, float]]:

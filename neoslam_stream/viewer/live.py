@@ -3,8 +3,10 @@
 The viewer attaches in client mode to the run's router (``endpoints.json``, as ``neoslam monitor``)
 and subscribes to :data:`LIVE_TOPICS`. Its zenoh callbacks only queue: images in a ring of
 :data:`IMAGE_RING` (the oldest dropped and counted, so a slow viewer never back-pressures a
-lossless run through zenoh's blocking congestion control), the small messages in an unbounded
-deque. One thread decodes and logs them, until the run's report.json (or part.json) appears.
+lossless run through zenoh's blocking congestion control; with an image interval, those that come
+sooner than it after the last one kept are let pass before they are even copied, counted), the
+small messages in a deque of at most :data:`SMALL_MAX` (beyond, dropped and counted). One thread
+decodes and logs them, until the run's report.json (or part.json) appears.
 """
 
 from __future__ import annotations
@@ -25,20 +27,26 @@ log = logging.getLogger("neoslam.viewer")
 
 #: images waiting to be logged; beyond this the oldest is dropped (counted in ``ViewStats``)
 IMAGE_RING = 4
+#: small messages waiting to be logged, at most (beyond: dropped, counted)
+SMALL_MAX = 100_000
 #: the run's topics the live viewer subscribes to (the stats of every stage come on stats/**)
 LIVE_TOPICS = ("image", "odom", "groundtruth", "visual_template", "experience_map/pose",
-               "experience_map/map", "stats/**")
+               "experience_map/map", "stats/**", "log")
 
 
 class LiveFeed:
-    """Subscriptions to a running pipeline; callbacks only queue (see the module docstring)."""
+    """Subscriptions to a running pipeline; callbacks only queue (see the module docstring).
+    ``image_interval_s``: keep at most one image per this many seconds (0: every one)."""
 
-    def __init__(self, run: str, connect: list[str]) -> None:
+    def __init__(self, run: str, connect: list[str], image_interval_s: float = 0.0) -> None:
         from ..runtime.bus import key_for, open_session
 
         self.session = open_session(listen=[], connect=connect, mode="client")
+        self.run = run
         self.images: deque[bytes] = deque(maxlen=IMAGE_RING)
-        self.images_dropped = 0
+        self.images_dropped = self.images_thinned = self.small_dropped = 0
+        self.image_interval_s = image_interval_s
+        self._image_at = -float("inf")
         self.small: deque[tuple[str, bytes]] = deque()
         self.cond = threading.Condition()
         self.subs = []
@@ -47,16 +55,31 @@ class LiveFeed:
 
     def _callback(self, topic: str) -> Any:
         def on(sample: Any) -> None:
+            if topic == "image" and self.image_interval_s > 0:
+                now = time.monotonic()
+                if now - self._image_at < self.image_interval_s:
+                    self.images_thinned += 1
+                    return
+                self._image_at = now
             payload = sample.payload.to_bytes()
             with self.cond:
                 if topic == "image":
                     if len(self.images) == self.images.maxlen:
                         self.images_dropped += 1
                     self.images.append(payload)
+                elif len(self.small) >= SMALL_MAX:
+                    self.small_dropped += 1
                 else:
                     self.small.append((topic, payload))
                 self.cond.notify()
         return on
+
+    def announce(self, name: str) -> Any:
+        """A liveliness token ``alive/<name>`` once subscribed: a run told to wait for this tool
+        (``run.wait_for``) starts its source now."""
+        from ..runtime.bus import key_for
+
+        return self.session.liveliness().declare_token(key_for(self.run, f"alive/{name}"))
 
     def take(self, timeout: float) -> tuple[list[tuple[str, bytes]], list[bytes]]:
         with self.cond:
@@ -119,38 +142,52 @@ class LiveLogger:
             if topic == "visual_template":
                 self.view.template(msg.frame, msg.stamp, int(d["id"]), bool(d.get("is_loop_closure")))
             elif topic == "experience_map/pose":
-                self.view.pose(msg.frame, msg.stamp, np.asarray(d["pose"], dtype=np.float64))
+                self.view.pose(msg.frame, msg.stamp, np.asarray(d["pose"], dtype=np.float64),
+                               int(d.get("exp_id", -1)), d.get("local"))
             elif topic == "groundtruth":
                 self.view.groundtruth(msg.frame, msg.stamp, np.asarray(d["pose"], dtype=np.float64))
             elif topic == "odom":
                 self.view.odometry_step(msg.frame, msg.stamp, float(d["vtrans"]), float(d["vrot"]),
                                         float(d.get("dt") or 0.0))
-            elif topic == "experience_map/map":
-                if d.get("export"):
-                    self.view.experience_map(d["export"], msg.frame)
+            elif topic == "experience_map/map":  # the final map's export, or a viewer's arrays
+                self.view.experience_map(d.get("export") or {"nodes": np.asarray(d["nodes"]).tolist(),
+                                                             "links": np.asarray(d.get("links", [])).tolist()},
+                                         msg.frame)
             elif msg.type == "stats":
                 self.stats(d)
+            elif msg.type == "log":
+                self.view.log_line(msg.stamp, d["level"], d["process"], d["name"], d["message"])
         except (KeyError, TypeError, ValueError) as exc:
             self._bad(topic, exc)
 
     def stats(self, d: dict[str, Any]) -> None:
         stage = d.get("stage")
-        if not isinstance(stage, str) or stage == "source" or "processed" not in d:
+        if stage == "source":
+            self.view.source_stats(d)
+            return
+        if not isinstance(stage, str) or "processed" not in d:
             return
         now = time.monotonic() - self.t0
         done = int(d["processed"])
         prev = self.last_stats.get(stage)
         self.last_stats[stage] = (now, done)
         if prev is not None and now > prev[0]:
-            self.view.stage_rate(now, stage, (done - prev[1]) / (now - prev[0]))
+            self.view.stage_stats(now, stage, (done - prev[1]) / (now - prev[0]), d)
 
 
 def watch_live(run_dir: Path, view: RunView, duration: float | None = None,
-               connect: list[str] | None = None) -> None:
+               connect: list[str] | None = None, image_interval_s: float = 0.0, announce: str = "",
+               stop: Any = None, ready: Any = None) -> None:
     """Log a running pipeline until its report.json (or part.json) appears (the run ended),
-    ``duration`` seconds pass or Ctrl-C; then log the final map from map.json when the run wrote one."""
+    ``duration`` seconds pass or Ctrl-C; then log the final map from map.json when the run wrote one,
+    and hand the view the run's report. ``view``: a :class:`RunView` or any view with its calls
+    (foxglove.FoxgloveView); ``announce``: the liveliness name declared once subscribed (and once
+    ``ready()`` returned, when given); ``stop``: a callable, true to stop watching."""
     ep = json.loads((run_dir / "endpoints.json").read_text())
-    feed = LiveFeed(ep["run"], list(ep["connect"]) + list(connect or []))
+    feed = LiveFeed(ep["run"], list(ep["connect"]) + list(connect or []), image_interval_s)
+    if ready is not None:
+        ready()
+    token = feed.announce(announce) if announce else None
     logger = LiveLogger(view)
     t_end = None if duration is None else time.monotonic() + duration
     ended_at: float | None = None
@@ -161,6 +198,9 @@ def watch_live(run_dir: Path, view: RunView, duration: float | None = None,
                 logger.message(topic, payload)
             for payload in images:
                 logger.image(payload)
+            view.tick()
+            if stop is not None and stop():
+                break
             if not small and not images:
                 if ended_at is None and _ended(run_dir):
                     ended_at = time.monotonic()
@@ -170,6 +210,10 @@ def watch_live(run_dir: Path, view: RunView, duration: float | None = None,
         pass
     finally:
         view.stats.images_dropped = feed.images_dropped
+        view.stats.images_thinned = feed.images_thinned
+        view.stats.messages_dropped = feed.small_dropped
+        if token is not None:
+            token.undeclare()
         feed.close()
     map_path = run_dir / "map.json"
     if ended_at is not None and map_path.exists() and not view.stats.map_nodes:
@@ -177,6 +221,12 @@ def watch_live(run_dir: Path, view: RunView, duration: float | None = None,
             view.experience_map(json.loads(map_path.read_text()))
         except (ValueError, KeyError, TypeError) as exc:
             log.warning("map.json not shown: %s", exc)
+    report = run_dir / "report.json"
+    if ended_at is not None and report.exists():
+        try:
+            view.run_ended(json.loads(report.read_text()))
+        except (OSError, ValueError) as exc:
+            log.warning("report.json not shown: %s", exc)
 
 
 def _started(run_dir: Path) -> float:

@@ -1,8 +1,9 @@
 """One rerun recording of a run: what the viewer shows, and under which entity path.
 
-``camera/image`` (I_t, live only), ``template/id`` and ``template/loop_closure`` (and one ``events``
-line per closure), ``map/trajectory``, ``map/groundtruth``, ``map/odometry``, ``map/loop_closures``,
-``map/robot``, ``map/experiences`` and ``map/links`` (map.json), ``stats/<stage>/rate_hz``. Poses are
+``camera/image`` (I_t: live, or the run folder's thinned camera.zip), ``template/id`` and
+``template/loop_closure`` (and one ``events`` line per closure), ``log`` (the run's log lines),
+``map/trajectory``, ``map/groundtruth``, ``map/odometry``, ``map/loop_closures``, ``map/robot``,
+``map/experiences`` and ``map/links`` (map.json), ``stats/<stage>/rate_hz``. Poses are
 logged one point per frame on the ``frame`` timeline (and ``stamp``); the blueprint shows every
 point up to the time cursor, so the map grows as the cursor moves without logging the path again.
 """
@@ -30,10 +31,15 @@ def _rerun() -> Any:
 
 @dataclass
 class ViewStats:
-    """What the viewer logged, per kind; ``images_dropped``: images it had no time for."""
+    """What the viewer logged, per kind; ``images_dropped``: images it had no time for;
+    ``images_thinned``: images it let pass on purpose (a viewer's camera rate); ``messages_dropped``:
+    other messages it had no room for; ``messages``: per topic, what a Foxglove server sent."""
 
     images: int = 0
     images_dropped: int = 0
+    images_thinned: int = 0
+    messages_dropped: int = 0
+    log_lines: int = 0
     templates: int = 0
     loop_closures: int = 0
     poses: int = 0
@@ -43,6 +49,7 @@ class ViewStats:
     bad_messages: int = 0
     map_nodes: int = 0
     stages: set[str] = field(default_factory=set)
+    messages: dict[str, int] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, Any]:
         d = dict(self.__dict__)
@@ -85,7 +92,8 @@ class RunView:
                                           end=rr.TimeRangeBoundary.cursor_relative())]
         return rrb.Blueprint(rrb.Horizontal(
             rrb.Vertical(rrb.Spatial2DView(origin="camera", name="camera"),
-                         rrb.TextLogView(origin="events", name="loop closures")),
+                         rrb.TextLogView(origin="events", name="loop closures"),
+                         rrb.TextLogView(origin="log", name="log")),
             rrb.Spatial2DView(origin="map", name="experience map", time_ranges=everything),
             rrb.Vertical(rrb.TimeSeriesView(origin="template", name="template id"),
                          rrb.TimeSeriesView(origin="stats", name="stage rates (Hz)"))))
@@ -102,6 +110,12 @@ class RunView:
     def image(self, frame: int, stamp: float | None, rgb: np.ndarray) -> None:
         self._at(frame, stamp)
         self.rec.log("camera/image", self.rr.Image(rgb))
+        self.stats.images += 1
+
+    def jpeg(self, frame: int, stamp: float | None, data: bytes) -> None:
+        """A camera frame as JPEG bytes (the run folder's camera.zip)."""
+        self._at(frame, stamp)
+        self.rec.log("camera/image", self.rr.EncodedImage(contents=data, media_type="image/jpeg"))
         self.stats.images += 1
 
     def template(self, frame: int, stamp: float | None, tid: int, loop: bool) -> None:
@@ -121,8 +135,10 @@ class RunView:
         self._at(frame, None)
         self.rec.log("map/loop_closures", self.rr.Points2D([xy], colors=[(230, 60, 60)], radii=0.08))
 
-    def pose(self, frame: int, stamp: float | None, pose: np.ndarray) -> None:
-        """The experience map's pose (x, y, theta) of ``frame``."""
+    def pose(self, frame: int, stamp: float | None, pose: np.ndarray, exp_id: int = -1,
+             local: np.ndarray | None = None) -> None:
+        """The experience map's pose (x, y, theta) of ``frame`` (its experience and the pose in
+        that experience's frame are not shown here)."""
         p = np.asarray(pose, dtype=np.float64)
         self._at(frame, stamp)
         self.rec.log("map/trajectory", self.rr.Points2D([p[:2]], colors=[(40, 110, 230)], radii=0.03))
@@ -156,6 +172,23 @@ class RunView:
         self._odo = [x, y, th]
         self.odometry_pose(frame, stamp, np.array([x, y, th]))
 
+    def stage_stats(self, t_s: float, stage: str, rate_hz: float, st: dict[str, Any]) -> None:
+        """A stage's figures: its rate is shown."""
+        self.stage_rate(t_s, stage, rate_hz)
+
+    def source_stats(self, st: dict[str, Any]) -> None:
+        """The source's figures: not shown."""
+
+    def run_ended(self, report: dict[str, Any]) -> None:
+        """The run's report: not shown (it is in the run folder)."""
+
+    def log_line(self, t: float, level: str, process: str, name: str, message: str) -> None:
+        """One log line of the run's processes (``log`` in the text views)."""
+        self.rec.reset_time()
+        self.rec.set_time("wall_clock", timestamp=float(t))
+        self.rec.log("log", self.rr.TextLog(f"{process}: {message}", level=level))
+        self.stats.log_lines += 1
+
     def stage_rate(self, t_s: float, stage: str, rate_hz: float) -> None:
         """The rate (Hz) at which ``stage`` processed messages, at ``t_s`` seconds into the run."""
         self.rec.reset_time()
@@ -178,6 +211,9 @@ class RunView:
             self.rec.log("map/links", self.rr.LineStrips2D(strips, colors=[(240, 160, 30)]),
                          static=frame is None)
         self.stats.map_nodes = len(nodes)
+
+    def tick(self) -> None:
+        """Called now and then while watching a live run: nothing to do for a recording."""
 
     def close(self) -> None:
         self.rec.flush()

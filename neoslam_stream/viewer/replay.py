@@ -1,0 +1,141 @@
+"""A finished run played again from its folder, in time order, into a view (the Foxglove server).
+
+:func:`run_events` reads what the run folder holds (templates.csv, trajectory.tum, groundtruth.tum,
+odometry.tum, camera.zip, map.json, timeline.csv, log.jsonl, report.json) as one list of events on
+the source's clock; :func:`play` hands them to a view at ``speed`` times that clock (0: as fast as
+it goes). The map grows as it was made: each experience of the final map (map.json) appears at the
+stamp it was created, every :data:`MAP_STEP_S` of source time, with its final (relaxed) position.
+timeline.csv and log.jsonl count wall-clock seconds of the run: they are spread over the source's
+time in proportion (a lossless run is faster than its source).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+import zipfile
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .files import _read_csv, _read_tum, timeline_rates
+
+log = logging.getLogger("neoslam.viewer")
+
+#: seconds of source time between two drawings of the growing map
+MAP_STEP_S = 1.0
+Event = tuple[float, int, Callable[[Any], None]]
+
+
+def _json_lines(path: Path) -> list[dict[str, Any]]:
+    out = []
+    if path.exists():
+        for line in path.read_text(errors="replace").splitlines():
+            try:
+                row = json.loads(line)
+            except ValueError:
+                continue
+            if isinstance(row, dict) and row.get("t_s") is not None:
+                out.append(row)
+    return out
+
+
+def _map_steps(mp: dict[str, Any], t0: float, t1: float) -> list[Event]:
+    """The final map growing: at every MAP_STEP_S, its experiences created by then and their links."""
+    nodes = [n for n in mp.get("nodes", []) if isinstance(n, dict)]
+    links = [lk for lk in mp.get("links", []) if isinstance(lk, dict)]
+    events: list[Event] = []
+    t = t0
+    while t < t1 + MAP_STEP_S:
+        seen = [n for n in nodes if float(n.get("stamp", 0.0)) <= t]
+        ids = {n.get("id") for n in seen}
+        part = {"nodes": seen, "links": [lk for lk in links if lk.get("from") in ids and lk.get("to") in ids]}
+        events.append((t, 3, lambda v, p=part: v.experience_map(p)))
+        t += MAP_STEP_S
+    events.append((t1, 4, lambda v: v.experience_map(mp)))
+    return events
+
+
+def run_events(run_dir: str | Path) -> list[Event]:
+    """Every event of the run folder, sorted by (source time, kind): a frame's template before
+    its pose, the map after them."""
+    from ..runtime.camera_log import CAMERA_FILE, read_camera_zip
+
+    run_dir = Path(run_dir)
+    templates = _read_csv(run_dir / "templates.csv")
+    frame_of = {f"{float(r['stamp']):.6f}": int(r["frame"]) for r in templates}
+    events: list[Event] = []
+    for r in templates:
+        f, s, tid, loop = int(r["frame"]), float(r["stamp"]), int(r["template_id"]), r["is_loop_closure"] == "1"
+        events.append((s, 1, lambda v, f=f, s=s, tid=tid, loop=loop: v.template(f, s, tid, loop)))
+    for s, x, y, th in _read_tum(run_dir / "trajectory.tum"):
+        f = frame_of.get(f"{s:.6f}", -1)
+        events.append((s, 2, lambda v, f=f, s=s, p=np.array([x, y, th]): v.pose(f, s, p)))
+    for name, call in (("groundtruth.tum", "groundtruth"), ("odometry.tum", "odometry_pose")):
+        for s, x, y, th in _read_tum(run_dir / name):
+            events.append((s, 0, lambda v, s=s, p=np.array([x, y, th]), c=call: getattr(v, c)(frame_of.get(f"{s:.6f}"), s, p)))
+    if (run_dir / CAMERA_FILE).exists():
+        try:
+            for f, s, jpeg in read_camera_zip(run_dir / CAMERA_FILE):
+                events.append((s, 0, lambda v, f=f, s=s, j=jpeg: v.jpeg(f, s, j)))
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:  # damaged: the rest is shown
+            log.warning("%s not shown: %s", run_dir / CAMERA_FILE, exc)
+    stamps = [e[0] for e in events]
+    t0, t1 = (min(stamps), max(stamps)) if stamps else (0.0, 0.0)
+    timeline = _read_csv(run_dir / "timeline.csv")
+    rows = {(r.get("stage"), r.get("t_s")): r for r in timeline}
+    logs = _json_lines(run_dir / "log.jsonl")
+    wall = max([float(r["t_s"]) for r in logs] + [float(r["t_s"]) for r in timeline if r.get("t_s")] + [1e-9])
+
+    def at(t_s: float) -> float:  # the run's wall-clock seconds on the source's clock
+        return t0 + (t1 - t0) * min(1.0, max(0.0, t_s / wall))
+
+    for t_s, stage, rate in timeline_rates(run_dir / "timeline.csv"):
+        row = rows.get((stage, f"{t_s:.2f}"), {})
+        if stage == "source":  # its row counts the frames it published
+            events.append((at(t_s), 5, lambda v, n=row.get("processed"): v.source_stats({"frames_in": int(n or 0)})))
+            continue
+        events.append((at(t_s), 5, lambda v, t=t_s, st=stage, r=rate, row=row: v.stage_stats(t, st, r, row)))
+    for row in logs:
+        events.append((at(float(row["t_s"])), 5, lambda v, r=row: v.log_line(
+            float(r.get("t", 0.0)), str(r.get("level", "INFO")), str(r.get("process", "")), str(r.get("name", "")),
+            str(r.get("message", "")))))
+    try:
+        mp = json.loads((run_dir / "map.json").read_text()) if (run_dir / "map.json").exists() else None
+    except ValueError as exc:
+        log.warning("map.json not shown: %s", exc)
+        mp = None
+    if isinstance(mp, dict):
+        events += _map_steps(mp, t0, t1)
+    try:
+        report = json.loads((run_dir / "report.json").read_text()) if (run_dir / "report.json").exists() else None
+    except ValueError:
+        report = None
+    if isinstance(report, dict):
+        events.append((t1, 6, lambda v: v.run_ended(report)))
+    return sorted(events, key=lambda e: (e[0], e[1]))
+
+
+def play(events: list[Event], view: Any, speed: float = 1.0, stop: Callable[[], bool] = lambda: False) -> int:
+    """Hand ``events`` to ``view`` at ``speed`` times source time (0: at once); the number handed."""
+    if not events:
+        return 0
+    t0, start = events[0][0], time.monotonic()
+    n = 0
+    for t, _kind, call in events:
+        if stop():
+            break
+        if speed > 0:
+            delay = start + (t - t0) / speed - time.monotonic()
+            if delay > 0:
+                time.sleep(delay)
+        try:
+            call(view)
+        except (KeyError, TypeError, ValueError) as exc:  # one bad row must not end the replay
+            view.stats.bad_messages += 1
+            log.debug("replay: skipped an event: %s", exc)
+        n += 1
+    return n

@@ -42,14 +42,20 @@ CACHE = Path(os.environ.get("NEOSLAM_CACHE", "/tmp/neoslam_generalisation"))
 #: which part of each data set chooses the constants and which reports; every kind reported has
 #: validation parts of its own, the stand-ins under other light ("hard") in worlds 9-11, which no
 #: other part uses; Gardens Point Walking (gardens:PAIR:HALF, bench/settings/gardens.yaml): the
-#: first half of each pair of walks validates, the second half is held out. The constants shipped
-#: now were chosen before the Gardens Point parts were added (a part whose data is absent is left
-#: out with its reason)
+#: first half of each pair of walks validates, the second half is held out (a part whose data is
+#: absent is left out with its reason)
 PARTS = {"validation": ["nordland:2", "nordland:4", "nordland:6", "synthetic:1", "synthetic:3", "synthetic:4",
                         "sparse:1", "sparse:2", "hard:9", "hard:10", "hard:11",
                         "gardens:hard:a", "gardens:night:a", "gardens:view:a"],
          "test": ["nordland:0", "synthetic:0", "synthetic:2", "sparse:0", "sparse:3", "sparse:4", "sparse:5",
                   "hard:0", "hard:1", "hard:2", "hard:3", "gardens:hard:b", "gardens:night:b", "gardens:view:b"]}
+#: the validation parts that choose the decision's constants (z_min, rho), A's light setting and its
+#: input size: all but Gardens Point's. There no grid point of the decision reaches the bar (a lateral
+#: shift of the view closes wrong places, precision 0.80-0.83 at z_min 3.5), and z_min 4.0, the one
+#: point that reaches every bar with them, costs Nordland a quarter of its recall; Gardens Point's
+#: parts validate the chain's representations instead (bench/stages.py: B's descriptors and D's
+#: re-ranking, docs/mapping.md) and report what the decision keeps of them
+DECISION_PARTS = [p for p in PARTS["validation"] if not p.startswith("gardens")]
 GRID = {"z_min": [3.0, 3.5, 4.0, 4.5], "rho": [0.7, 0.9, 1.0, 1.1, 1.2, 1.3]}
 #: precision each kind of validation part must reach, with a margin over the targets (Nordland's
 #: 0.9, the synthetic world's 0.99, the stand-ins' 0.9 with or without other light); among the grid
@@ -73,12 +79,13 @@ def default_config(platform: dict[str, Any] | None = None, **calibration: Any) -
 
 
 # ------------------------------------------------------------------------------ front ends
-def neoslam_templates(stream: Stream, cfg: Any, cells: list[np.ndarray] | None = None) -> tuple[list[dict], Any]:
-    """D's output per frame (the cells of ``cfg``'s B and C unless given), and the FrontEnd."""
+def neoslam_templates(stream: Stream, cfg: Any, cells: list[Any] | None = None) -> tuple[list[dict], Any]:
+    """D's output per frame (C's result through ``cfg``'s B and C unless given: its cells and B's
+    descriptor), and the FrontEnd."""
     fe = FrontEnd(cfg.front_end())
     if cells is None:
-        cells = stream.cells(fe)
-    out = [fe.template(c, s) for c, s in zip(cells, stream.stamps, strict=True)]
+        cells = stream.sdrs(fe)
+    out = [fe.template_of(c, s) for c, s in zip(cells, stream.stamps, strict=True)]
     return out, fe
 
 
@@ -94,7 +101,7 @@ def matched_frames(out: list[dict], starts: list[int] | None) -> list[tuple[int,
     return pairs
 
 
-def frontend_figures(stream: Stream, cfg: Any, cells: list[np.ndarray] | None = None) -> dict[str, Any]:
+def frontend_figures(stream: Stream, cfg: Any, cells: list[Any] | None = None) -> dict[str, Any]:
     out, fe = neoslam_templates(stream, cfg, cells)
     res = stream.score(matched_frames(out, fe.spatial_view.interval_start))
     if cfg.spatial_view.calibration.enabled:
@@ -208,7 +215,7 @@ def _grid_at(size: int, parts: list[str]) -> dict[str, Any]:
     for part in parts:
         stream = part_stream(part)
         cfg = load_config("default", {"platform": stream.platform, "features": {"input_size": size}})
-        valid[part] = (stream, stream.cells(FrontEnd(cfg.front_end())))
+        valid[part] = (stream, stream.sdrs(FrontEnd(cfg.front_end())))
     print("input", size, flush=True)
     return choose(valid)
 
@@ -316,7 +323,7 @@ def main() -> None:
         return
     only = set(args.only.split(","))
     res["parts"] = PARTS
-    valid = present(PARTS["validation"]) if only & {"input", "light", "choice"} else []
+    valid = present(DECISION_PARTS) if only & {"input", "light", "choice"} else []
     if "input" in only:
         res["input"] = choose_input(valid, args.jobs)
         res["choice"] = res["input"].pop("grids").get(res["input"]["choice"])

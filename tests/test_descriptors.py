@@ -113,3 +113,20 @@ def test_the_descriptor_travels_from_b_through_c_to_d():
     np.testing.assert_array_equal(sdr["descriptor"], code["descriptor"])
     (_, tmpl), = d.process("sdr", sdr)
     assert tmpl["id"] == 0 and d.core.spatial_view.descriptors.n == 0  # the open interval is not indexed yet
+
+
+def test_the_view_a_place_ago_is_the_newest_kept_view_at_least_that_old():
+    d = IntervalDescriptors()
+    views = {0.0: [100, 0], 1.0: [0, 100], 2.0: [100, 100]}
+    for t, v in views.items():
+        d.note_view(t, np.array(v, np.int8), keep_s=1.5)
+    q = np.array([100, 0], np.int8)
+    # at 3.0 s, 1.5 s ago: the newest view at or before 1.5 s is the one at 1.0 s, orthogonal to q
+    assert d.view_ago_cosine(q, 3.0, 1.5) == pytest.approx(0.0)
+    # 0.5 s ago: the view at 2.0 s, 45 degrees from q
+    assert d.view_ago_cosine(q, 2.5, 0.5) == pytest.approx(np.sqrt(0.5))
+    # nothing that old yet
+    assert d.view_ago_cosine(q, 3.0, 10.0) is None
+    again = IntervalDescriptors()
+    again.load_state_dict(d.state_dict())
+    assert again.view_ago_cosine(q, 3.0, 1.5) == pytest.approx(0.0)

@@ -11,6 +11,7 @@ the mean of its frames' unit descriptors, kept as int8 with its norm; one row pe
 
 from __future__ import annotations
 
+from collections import deque
 from typing import Any
 
 import numpy as np
@@ -44,21 +45,31 @@ class IntervalDescriptors:
         self._norms = np.zeros(0, np.float64)
         self.n = 0
         self._sum: np.ndarray | None = None
-        self.previous: np.ndarray | None = None
+        #: the recent frames' (stamp, descriptor), back to the newest at least ``ago_s`` old
+        self._recent: deque[tuple[float, np.ndarray]] = deque()
 
     def open_interval(self) -> None:
-        """A new interval opens: its frames' descriptors are summed afresh; the one that closed is
-        the view a moment ago (:meth:`previous_cosine`)."""
-        self.previous = None if self._sum is None else self._sum / float(np.linalg.norm(self._sum))
+        """A new interval opens: its frames' descriptors are summed afresh."""
         self._sum = None
 
-    def previous_cosine(self, descriptor: np.ndarray) -> float | None:
-        """The cosine of a frame's descriptor with the interval before the open one (None: unknown)."""
-        if self.previous is None:
-            return None
+    def note_view(self, stamp: float, descriptor: np.ndarray, keep_s: float) -> None:
+        """Keep a frame's descriptor for :meth:`view_ago_cosine`, and the views back to the newest
+        at least ``keep_s`` older than it."""
+        while len(self._recent) > 1 and self._recent[1][0] <= stamp - keep_s:
+            self._recent.popleft()
+        self._recent.append((float(stamp), np.asarray(descriptor, dtype=np.int8).copy()))
+
+    def view_ago_cosine(self, descriptor: np.ndarray, stamp: float, ago_s: float) -> float | None:
+        """The cosine of a frame's descriptor with the view ``ago_s`` seconds before it on the way
+        here (the newest kept view at least that old; None before there is one): how alike two views
+        of one place are on this visit, at the distance that still counts as the same place."""
         q = np.asarray(descriptor, dtype=np.float32)
-        qn = float(np.linalg.norm(q))
-        return float(self.previous @ q) / qn if qn and q.shape == self.previous.shape else None
+        older = [d for t, d in self._recent if t <= stamp - ago_s]
+        if not older or older[-1].shape != q.shape:
+            return None
+        ref = older[-1].astype(np.float32)
+        den = float(np.linalg.norm(ref)) * float(np.linalg.norm(q))
+        return float(ref @ q) / den if den else None
 
     def add_frame(self, descriptor: np.ndarray | None) -> None:
         """One frame of the open interval (``descriptor``: int8, or None)."""
@@ -87,6 +98,10 @@ class IntervalDescriptors:
             self._norms[slot] = float(np.linalg.norm(row.astype(np.float64)))
         self.n = slot + 1
 
+    def new_session(self) -> None:
+        """A new session: the recent views were the old stream's."""
+        self._recent.clear()
+
     def cosines(self, descriptor: np.ndarray, slots: np.ndarray) -> np.ndarray:
         """The cosine of a frame's descriptor with the intervals at ``slots`` (NaN where either
         has none)."""
@@ -109,7 +124,8 @@ class IntervalDescriptors:
 
     def state_dict(self) -> dict[str, Any]:
         return {"rows": self._rows[:self.n].copy(), "open": None if self._sum is None else self._sum.copy(),
-                "previous": None if self.previous is None else self.previous.copy()}
+                "recent_stamps": np.array([t for t, _ in self._recent], np.float64),
+                "recent": [d for _, d in self._recent]}
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
         rows = np.asarray(st["rows"], dtype=np.int8)
@@ -117,4 +133,5 @@ class IntervalDescriptors:
         self._rows = rows.reshape(self.n, rows.shape[1] if rows.ndim == 2 else 0).copy()
         self._norms = np.linalg.norm(self._rows.astype(np.float64), axis=1)
         self._sum = None if st["open"] is None else np.asarray(st["open"], dtype=np.float32).copy()
-        self.previous = None if st["previous"] is None else np.asarray(st["previous"], dtype=np.float32).copy()
+        self._recent = deque((float(t), np.asarray(d, dtype=np.int8).copy())
+                             for t, d in zip(st["recent_stamps"], st["recent"], strict=True))

@@ -194,6 +194,9 @@ class SpatialViewCells:
             self.interval_template.append(-1)
         if cfg.rerank:
             self.descriptors.add_frame(descriptor)
+            if cfg.rerank_sample and descriptor is not None:
+                cal = self.calibration
+                self.descriptors.note_view(stamp, descriptor, cal.seconds(cal.config.neighbourhood_m))
         if cfg.calibration.enabled:
             loop, best, best_score, second, second_score = self._calibrated(y, y_bm, stamp, descriptor)
         else:
@@ -282,7 +285,7 @@ class SpatialViewCells:
             scores = self._normalised_scores(y, slots)
             cal.note_distinctness("cells", cal.standing_out(scores, self.interval_stamp[which]))
             if self.config.rerank_sample and descriptor is not None and self.descriptors.n:
-                a, which = self._assess_descriptors(scores, which, descriptor)
+                a, which = self._assess_descriptors(scores, which, descriptor, stamp)
                 if a is not None:
                     cal.note_distinctness("descriptors", a.z)
             else:
@@ -312,7 +315,8 @@ class SpatialViewCells:
             return None
         return int(top[np.nanargmax(cos)])
 
-    def _assess_descriptors(self, scores: np.ndarray, which: np.ndarray, descriptor: np.ndarray) -> tuple[Any, np.ndarray]:
+    def _assess_descriptors(self, scores: np.ndarray, which: np.ndarray, descriptor: np.ndarray,
+                            stamp: float) -> tuple[Any, np.ndarray]:
         """The calibrated decision on descriptors: the ``rerank`` best candidates by score and
         ``rerank_sample`` others spread evenly over the rest, scored by cosine; the winner the most
         alike of the first, judged against them all."""
@@ -328,8 +332,9 @@ class SpatialViewCells:
         if not np.any(ok[:top.shape[0]]):
             return None, which
         best = int(np.argmax(np.where(np.arange(cand.shape[0]) < int(ok[:top.shape[0]].sum()), cos, -np.inf)))
-        a = self.calibration.assess(cos, self.interval_stamp[which[cand]], self.descriptors.previous_cosine(descriptor),
-                                    best)
+        cal = self.calibration
+        recent = self.descriptors.view_ago_cosine(descriptor, stamp, cal.seconds(cal.config.neighbourhood_m))
+        a = cal.assess(cos, self.interval_stamp[which[cand]], recent, best)
         return a, which[cand]
 
     def _confirm_duplicates(self, loop: bool, made_template: bool, best: int) -> None:
@@ -386,7 +391,7 @@ class SpatialViewCells:
             last = self.calibration.last_stamp
             self._old_last_stamp = float(self.interval_stamp[-1] if last is None else last)
         self.calibration.new_session()
-        self.descriptors.previous = None  # the view a moment ago was the old stream's
+        self.descriptors.new_session()  # the views a moment ago were the old stream's
 
     # ---------------------------------------------------------------- state
     def state_dict(self) -> dict[str, Any]:

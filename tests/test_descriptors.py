@@ -82,16 +82,20 @@ def test_an_interval_descriptor_is_the_mean_of_its_frames_unit_descriptors():
                                d.cosines(np.array([1, 2], np.int8), np.array([0, 1])))
 
 
-def test_d_reranks_its_shortlist_by_descriptor():
-    d = SpatialViewCells(SpatialViewConfig(calibration={"enabled": True}, rerank=2))
-    for slot, v in enumerate(([1, 0, 0], [0, 1, 0], [0, 0, 1])):
+def test_d_reranks_its_shortlist_by_the_votes_of_cells_and_descriptors():
+    d = SpatialViewCells(SpatialViewConfig(calibration={"enabled": True}, rerank=3))
+    for slot, v in enumerate(([1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0])):
         d.descriptors.add_frame(np.array(v, np.int8) * 100)
         d.descriptors.close_interval(slot)
         d.descriptors.open_interval()
-    scores = np.array([0.9, 0.8, 0.1])
-    # the two best by score are slots 0 and 1; the frame looks like slot 1, then like slot 2
+    scores = np.array([0.9, 0.85, 0.8, 0.1])  # slots 0, 1, 2 are shortlisted
+    # standardised over the three: scores 0.9, 0.85, 0.8 vote +1.22, 0, -1.22; a frame like slot 1
+    # (cosines 0, 1, 0) votes -0.71, +1.41, -0.71: sums 0.52, 1.41, -1.93, slot 1 wins
     assert d._reranked(scores, np.array([0, 100, 0], np.int8)) == 1
-    assert d._reranked(scores, np.array([0, 10, 100], np.int8)) == 1  # slot 2 is not shortlisted
+    # a frame like slot 2 only: sums 0.52, -0.71, 0.19: the descriptor alone does not carry slot 2
+    assert d._reranked(scores, np.array([0, 0, 100], np.int8)) == 0
+    # like slot 3, which is not shortlisted: its descriptor is never read
+    assert d._reranked(scores, np.array([100, 100, 0], np.int8)) == 0  # cosines 0.71, 0.71, 0: slot 0
     assert d._reranked(scores, None) is None
     off = SpatialViewCells(SpatialViewConfig(calibration={"enabled": True}))
     assert off._reranked(scores, np.array([0, 100, 0], np.int8)) is None

@@ -304,16 +304,21 @@ class SpatialViewCells:
         return loop, best, best_score, second, second_score
 
     def _reranked(self, scores: np.ndarray, descriptor: np.ndarray | None) -> int | None:
-        """With ``rerank`` k: of the k best candidates by score (ties: lowest slot), the one whose
-        descriptor is most alike the frame's; None when off or no descriptor can tell."""
+        """With ``rerank`` k: of the k best candidates by score, the one whose score and descriptor
+        cosine, each standardised over those k, sum highest (ties: the better score): the cells and
+        the finer descriptor both vote, so a view that only the descriptor finds alike (the same
+        scene seen from elsewhere) does not win on it alone. None when off or no descriptor can tell."""
         k = self.config.rerank
         if not k or descriptor is None or scores.shape[0] == 0:
             return None
         top = np.argsort(-scores, kind="stable")[:k]
         cos = self.descriptors.cosines(descriptor, top)
-        if np.all(np.isnan(cos)):
+        ok = ~np.isnan(cos)
+        if not ok.any():
             return None
-        return int(top[np.nanargmax(cos)])
+        top, c, s = top[ok], cos[ok], scores[top[ok]]
+        votes = (c - c.mean()) / (c.std() + 1e-9) + (s - s.mean()) / (s.std() + 1e-9)
+        return int(top[np.argmax(votes)])
 
     def _assess_descriptors(self, scores: np.ndarray, which: np.ndarray, descriptor: np.ndarray,
                             stamp: float) -> tuple[Any, np.ndarray]:

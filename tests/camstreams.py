@@ -1,8 +1,8 @@
-"""Real camera streams on loopback for the camera tests: an HTTP MJPEG server (a thread writing
-multipart/x-mixed-replace JPEGs, as IP cameras and ESP32 boards do), an RTSP server that an
-OpenCV client pulls from (RTP over the RTSP connection, MPEG-TS payload encoded by ffmpeg, as an
-IP camera serves it), and ffmpeg sending MPEG-TS over UDP. No mock: OpenCV's FFmpeg backend reads
-each of them as it would a camera's."""
+"""Real camera streams on loopback for the camera tests: an HTTP MJPEG server (bench/mjpeg_server.py's,
+shared with bench/camera_soak.py: a thread writing multipart/x-mixed-replace JPEGs, as IP cameras
+and ESP32 boards do), an RTSP server that an OpenCV client pulls from (RTP over the RTSP
+connection, MPEG-TS payload encoded by ffmpeg, as an IP camera serves it), and ffmpeg sending
+MPEG-TS over UDP. No mock: OpenCV's FFmpeg backend reads each of them as it would a camera's."""
 
 from __future__ import annotations
 
@@ -10,13 +10,20 @@ import shutil
 import socket
 import struct
 import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
 
-import cv2
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+from mjpeg_server import MjpegServer as _MjpegServer  # noqa: E402
+from mjpeg_server import jpeg  # noqa: E402
+
+__all__ = ["FFMPEG", "NO_FFMPEG", "MjpegServer", "RtspServer", "ffmpeg_testsrc", "free_udp_port", "gray_frame",
+           "jpeg"]
 
 FFMPEG = shutil.which("ffmpeg")
 NO_FFMPEG = "ffmpeg is not installed (apt-get install -y ffmpeg): no UDP or RTSP stream to read"
@@ -29,63 +36,13 @@ def gray_frame(i: int, width: int = 160, height: int = 120) -> np.ndarray:
     return img
 
 
-def jpeg(img: np.ndarray) -> bytes:
-    return cv2.imencode(".jpg", img)[1].tobytes()
-
-
-class MjpegServer:
-    """An MJPEG stream on http://127.0.0.1:PORT/feed.mjpg at ``rate`` frames per second.
-    ``frame(i)`` gives the JPEG bytes of frame i (a test can send another size, or a broken one).
-    ``stop()`` closes the listening socket and every open stream (the camera is gone);
-    ``start()`` serves again on the same port (the camera is back)."""
+class MjpegServer(_MjpegServer):
+    """bench/mjpeg_server.py's MJPEG stream on http://127.0.0.1:PORT/feed.mjpg (``stop()``: the
+    camera is gone, ``start()``: back on the same port); ``frame(i)`` gives the JPEG bytes of frame
+    i (a test can send another size, or a broken one), :func:`gray_frame`'s by default."""
 
     def __init__(self, rate: float = 20.0, frame: Callable[[int], bytes] | None = None) -> None:
-        self.rate = rate
-        self.frame = frame or (lambda i: jpeg(gray_frame(i)))
-        self.port = 0
-        self.sent = 0
-        self._server: ThreadingHTTPServer | None = None
-        self._stopped = threading.Event()
-
-    @property
-    def url(self) -> str:
-        return f"http://127.0.0.1:{self.port}/feed.mjpg"
-
-    def start(self) -> MjpegServer:
-        owner = self
-        self._stopped = stopped = threading.Event()
-
-        class Handler(BaseHTTPRequestHandler):
-            def do_GET(self) -> None:  # noqa: N802 (http.server's name)
-                self.send_response(200)
-                self.send_header("Content-Type", "multipart/x-mixed-replace; boundary=frame")
-                self.end_headers()
-                while not stopped.is_set():
-                    data = owner.frame(owner.sent)
-                    try:
-                        self.wfile.write(b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: %d\r\n\r\n"
-                                         % len(data) + data + b"\r\n")
-                    except OSError:
-                        return
-                    owner.sent += 1
-                    stopped.wait(1.0 / owner.rate)
-
-            def log_message(self, *args) -> None:
-                pass
-
-        ThreadingHTTPServer.allow_reuse_address = True
-        self._server = ThreadingHTTPServer(("127.0.0.1", self.port), Handler)
-        self._server.daemon_threads = True
-        self.port = self._server.server_address[1]
-        threading.Thread(target=self._server.serve_forever, daemon=True).start()
-        return self
-
-    def stop(self) -> None:
-        self._stopped.set()
-        if self._server is not None:
-            self._server.shutdown()
-            self._server.server_close()
-            self._server = None
+        super().__init__(rate, frame or (lambda i: jpeg(gray_frame(i))))
 
 
 def free_udp_port() -> int:

@@ -118,6 +118,9 @@ ELSEWHERE = {
     "evo_rpe": "evo's command, an outside tool; tests/test_evo.py runs it on our TUM files where evo is installed",
     "python examples/publish_odometry.py": "the robot's side; tests/test_publish_odometry.py runs it against a run "
                                            "on loopback",
+    ".venv/bin/python bench/camera_soak.py": "an hour of a live pipeline, measured on a quiet machine (its figures are "
+                                             "the point); tests/test_camera_soak.py checks its computations and "
+                                             "tests/test_sources_camera.py the camera it reads and the stream it serves",
 }
 PLACEHOLDER = re.compile(r"\b(RUN_DIR|OLD_RUN_DIR|DIR|FILE|MAP_FILE|CONFIG|NAME|KIND|HZ|N|S|X|FRAMES)\b")
 FLAG = re.compile(r"(?<![\w-])(--?[A-Za-z][\w-]*)")

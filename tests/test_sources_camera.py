@@ -55,6 +55,42 @@ def _wait(predicate, timeout: float = 15.0, what: str = "") -> None:
 
 
 # ----------------------------------------------------------------------------- in one process
+def test_drops_after_the_stream_ended_are_not_the_runs_loss():
+    """A camera's thread goes on replacing the frame in its slot while the run drains, until the
+    source is closed: the source's stats keep its figures as they were when its stream ended."""
+    from neoslam_stream.runtime.messages import decode
+    from neoslam_stream.runtime.source_runner import SourceRunner, SourceRunSpec, SourceSpec
+
+    class Camera:  # what the runner reads of a live camera: info() with its slot's drops
+        dropped = 0
+        errors: dict = {}
+
+        def info(self):
+            return {"kind": "camera", "dropped": self.dropped}
+
+    class Session:
+        def __init__(self):
+            self.sent = []
+
+        def put(self, key, payload):
+            self.sent.append(decode(payload, expected_type="stats").data)
+
+    cam = Camera()
+    runner = SourceRunner(SourceRunSpec(source=SourceSpec("x:y", {}), run="r", run_dir=".", lossless=False,
+                                        final_topic="t"), cam, None)
+    runner.session = Session()
+    cam.dropped = 2
+    runner.publish_stats()  # streaming: the figures as they are
+    runner.done = True  # the stream ended (duration, stop) with 3 drops
+    cam.dropped = 3
+    runner.publish_stats()
+    cam.dropped = 60  # two seconds of a 30-FPS camera while the run drains
+    runner.publish_stats(final=True)
+    ring = [d["lost_at_source"].get(SourceRunner.RING) for d in runner.session.sent]
+    assert ring == [2, 3, 3]
+    assert runner.session.sent[-1]["info"]["dropped"] == 3
+
+
 def test_the_camera_takes_the_robots_odometry_from_a_zenoh_key():
     """The robot publishes odom messages (as examples/publish_odometry.py does) while the camera
     streams: the frames carry the motion received since the frame before, as with the zenoh source."""

@@ -8,7 +8,7 @@ import json
 
 import pytest
 
-from neoslam_stream.runtime.trace import TraceWriter, read_trace, stage_figures
+from neoslam_stream.runtime.trace import TraceWriter, read_trace, stage_figures, trace_origin
 
 WORKERS = {"A": ["A"], "map": ["B", "recorder"]}
 
@@ -29,6 +29,8 @@ def test_the_events_of_two_frames_by_hand(tmp_path):
     assert names == {(1, 1): "source", (2, 1): "A", (3, 1): "B"}
     procs = {e["pid"]: e["args"]["name"] for e in ev if e["ph"] == "M" and e["name"] == "process_name"}
     assert procs == {1: "source", 2: "A", 3: "map"}
+    # the origin rides on the source's name: a ts back on the epoch is the trace's own time
+    assert trace_origin(tmp_path / "t.json") == 100.0
     spans = [(e["name"], e["ts"], e["dur"], e["args"]["frames"]) for e in ev if e["ph"] == "X"]
     # A's batch once, with both frames, 4 ms from 2 ms after the origin; B twice, 1 ms each
     assert ("A", 2000.0, 4000.0, [0, 1]) in spans

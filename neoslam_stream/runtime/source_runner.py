@@ -203,6 +203,8 @@ class SourceRunner:
         self.last_frame = -1
         self.done = False
         self.info: Any = {}
+        #: the source's figures when its stream ended (source_figures)
+        self.figures_at_end: tuple[Any, dict[str, int]] | None = None
         # the source's own faults (unreadable records, a truncated file, a frame that cannot be
         # encoded): counted per cause, logged once, reported like a stage's errors
         self.errors: dict[str, int] = {}
@@ -294,15 +296,29 @@ class SourceRunner:
             self.pose = (ox, oy, oth)
             self.odo_rows.append((sf.stamp, ox, oy, oth))
 
-    def publish_stats(self, final: bool = False) -> None:
-        spec, source = self.spec, self.source
+    def source_figures(self) -> tuple[Any, dict[str, int]]:
+        """The source's ``info()`` and its skipped records per cause; once its stream has ended
+        (``done``), as they were then: a live source goes on receiving until it is closed (a
+        camera's thread replaces the frame in its slot while the run drains), and what it counts
+        after the run stopped taking frames is not the run's loss."""
+        if self.figures_at_end is not None:
+            return self.figures_at_end
+        done = self.done
         try:
-            self.info = source.info()
+            info = self.source.info()
         except Exception as exc:  # diagnostics only
-            self.info = {"info_error": str(exc)}
+            info = {"info_error": str(exc)}
+        figures = (info, dict(getattr(self.source, "errors", {}) or {}))
+        if done:
+            self.figures_at_end = figures
+        return figures
+
+    def publish_stats(self, final: bool = False) -> None:
+        spec = self.spec
+        self.info, skipped = self.source_figures()
         info = self.info
         causes = dict(self.errors)
-        for cause, n in dict(getattr(source, "errors", {}) or {}).items():  # records the source skipped
+        for cause, n in skipped.items():  # records the source skipped
             causes[cause] = causes.get(cause, 0) + int(n)
         lost_now = dict(self.lost)
         ring = info.get("dropped") if isinstance(info, dict) else None

@@ -14,7 +14,10 @@ as they come (memory stays bounded: a pending span per stage):
 * an async span (``"b"`` / ``"e"``, category ``queue``, id the frame) from the moment the stage took
   the frame to the start of its service (the queueing time), with ``transit_ms``: the time from
   the previous stage's end of service, when it published, to that moment;
-* flow events (``"s"``, ``"t"``, ``"f"``, id the frame) linking one frame's stages, drawn as arrows.
+* flow events (``"s"``, ``"t"``, ``"f"``, id the frame) linking one frame's stages, drawn as arrows;
+* the source's process name carries ``args.origin_s``, the run's start (s since the epoch) that
+  every ``ts`` counts from (viewers ignore it), so that :func:`trace_origin` puts the times back on
+  the clock of the frames' stamps (a camera's capture times).
 
 The file is a JSON array written event by event; its closing bracket comes at the end of the run,
 and the viewers read a file cut short (a killed run) as well. :func:`read_trace` reads it back and
@@ -83,12 +86,19 @@ class TraceWriter:
         pid, tid = self.where[stage]
         if (pid, 0) not in self.named:
             self.named.add((pid, 0))
-            self._emit({"ph": "M", "name": "process_name", "pid": pid, "args": {"name": self.process_names[pid]}})
+            self._emit({"ph": "M", "name": "process_name", "pid": pid, "args": self._process_args(pid)})
             self._emit({"ph": "M", "name": "process_sort_index", "pid": pid, "args": {"sort_index": pid}})
         if (pid, tid) not in self.named:
             self.named.add((pid, tid))
             self._emit({"ph": "M", "name": "thread_name", "pid": pid, "tid": tid, "args": {"name": stage}})
         return pid, tid
+
+    def _process_args(self, pid: int) -> dict[str, Any]:
+        """The process name event's args: the source's carries the trace's origin too."""
+        args: dict[str, Any] = {"name": self.process_names[pid]}
+        if pid == 1:
+            args["origin_s"] = self.origin
+        return args
 
     def add(self, frame: int, trace: list[Any]) -> None:
         """One frame's trace: its spans, waits and flow."""
@@ -133,7 +143,7 @@ class TraceWriter:
         for stage in list(self.pending):
             self._flush(stage)
         # every event is followed by a comma; the last one, the source's name again, is not
-        self._fh.write(json.dumps({"ph": "M", "name": "process_name", "pid": 1, "args": {"name": SOURCE}},
+        self._fh.write(json.dumps({"ph": "M", "name": "process_name", "pid": 1, "args": self._process_args(1)},
                                   separators=(",", ":")) + "\n]\n")
         self._fh.close()
 
@@ -146,6 +156,16 @@ def read_trace(path: str | Path) -> list[dict[str, Any]]:
         text = text[: text.rfind("\n") + 1] if not text.endswith(",") else text
         text = text.rstrip().rstrip(",") + "]"
     return json.loads(text)
+
+
+def trace_origin(path: str | Path) -> float | None:
+    """The run's start (s since the epoch) that the ``ts`` of the trace at ``path`` count from, read
+    from its first events (None: a trace written before it was recorded)."""
+    with open(path, encoding="utf-8") as fh:
+        for line in fh:
+            if '"origin_s"' in line:
+                return float(json.loads(line.rstrip().rstrip(","))["args"]["origin_s"])
+    return None
 
 
 def stage_figures(events: list[dict[str, Any]]) -> dict[str, dict[str, float]]:

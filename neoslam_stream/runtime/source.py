@@ -44,7 +44,9 @@ class Source(Protocol):
     have ``errors`` (records it skipped, counted per cause), which the runner reports; in ``info()``,
     ``dropped`` (frames its own ring dropped) and ``lost`` (frames it knows it lost, per cause: a
     camera's outages), which count as frames lost at the source; and ``interrupt()``, which makes a
-    waiting iteration end soon (called from another thread at the run's stop or duration)."""
+    waiting iteration end soon (called from another thread at the run's stop or duration); and
+    ``live`` (True: its frames come as they happen, and are published as they come, not paced by
+    their stamps)."""
 
     rate_hz: float | None
     length: int | None

@@ -388,7 +388,9 @@ class SourceRunner:
         assert self.t0 is not None
         if spec.pacing == "fixed" and spec.rate:
             target = self.t0 + self.n_sent / spec.rate
-        elif spec.pacing == "recorded":
+        elif spec.pacing == "recorded" and not getattr(self.source, "live", False):
+            # a live source's frames come as they happen: pacing them by their stamps would hold
+            # every frame back by as long as the first one waited
             self.stamp0 = sf.stamp if self.stamp0 is None else self.stamp0
             target = self.t0 + (sf.stamp - self.stamp0) / max(spec.rate_multiplier, 1e-9)
         else:

@@ -3,8 +3,8 @@
 A source is a plain iterator of :class:`~neoslam_stream.runtime.source.SourceFrame`; the runtime's
 source process publishes what it yields. ``SOURCES`` names the built-in kinds for ``--source KIND``
 (``"package.module:Class"`` names a user's own); ``launch`` resolves a run's kind to its factory
-here and hands it to the runtime, which knows no source module. A live kind (``LIVE_KINDS``) runs
-in real time unless the config or a flag names the mode (:func:`with_live_default`).
+here and hands it to the runtime, which knows no source module. A live source (its class's
+``live``) runs in real time unless the config or a flag names the mode (:func:`with_live_default`).
 """
 
 from __future__ import annotations
@@ -24,15 +24,11 @@ SOURCES: dict[str, str] = {
     "rmw-zenoh": "neoslam_stream.sources.rmw_zenoh:RmwZenohCameraSource",
 }
 
-#: kinds whose frames come live: a slow run must drop the oldest, not hold the camera back
-LIVE_KINDS = frozenset({"camera", "zenoh", "zenoh-ros2", "rmw-zenoh"})
-
-
 def with_live_default(cfg: Any) -> Any:
     """``cfg`` in real-time mode when its source is live and neither the config file nor a flag
     (``--lossless``) named ``run.mode``; else ``cfg`` itself. The DESIGN's rule (real time for live
     input, lossless for recorded data), applied where a run starts."""
-    if cfg.source.kind not in LIVE_KINDS or "mode" in cfg.run.model_fields_set:
+    if "mode" in cfg.run.model_fields_set or not getattr(source_class(cfg.source.kind), "live", False):
         return cfg
     return cfg.model_copy(update={"run": cfg.run.model_copy(update={"mode": "realtime"})})
 

@@ -24,6 +24,9 @@ class Source:
     rate_hz: float | None = None
     #: Known length (frames) for progress bars, or None for live/unbounded sources.
     length: int | None = None
+    #: frames that come as they happen (a camera, a network stream): a run defaults to real time,
+    #: and each frame is published as it comes, never paced by its stamps
+    live: bool = False
 
     def __iter__(self) -> Iterator[SourceFrame]:
         raise NotImplementedError

@@ -3,7 +3,7 @@
 The camera is opened when the source is built, so a wrong device or address ends the run at once
 with one line saying what to check; from then on it is read by :class:`~.capture.LiveCapture`'s
 thread, which keeps only the newest frame and reopens a lost stream with backoff. A live camera
-is a live source: a run with it defaults to real-time mode (``sources.LIVE_KINDS``). A camera
+is a live source: a run with it defaults to real-time mode (``Source.live``). A camera
 gives no wheel odometry: each frame carries zero motion, as an image folder without
 ``odometry.tum`` does (``odometry: visual`` measures the motion from the images instead).
 """
@@ -36,6 +36,8 @@ class CameraSource(Source):
     the robot's ``odom`` messages on ``odom_key`` (``sources/odometry.py``; ``connect`` / ``listen``:
     the endpoints where the robot publishes them), summed into each frame's motion.
     """
+
+    live = True
 
     def __init__(self, device: int | str | None = None, url: str | None = None, gstreamer: str | None = None,
                  width: int | None = None, height: int | None = None, rate_hz: float | None = None,

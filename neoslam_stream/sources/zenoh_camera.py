@@ -62,6 +62,10 @@ ImageType = Literal["sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"]
 
 
 class _Live(Source):
+    """A source fed from the bus as frames come (Source.live)."""
+
+    live = True
+
     def __init__(self, connect: list[str] | None, listen: list[str] | None, capacity: int, timeout_s: float | None,
                  mode: str = "peer") -> None:
         self.length = None

@@ -217,7 +217,7 @@ class _SLAM:
             if "extractor" in self.front_end.__dict__:
                 out["A"] = {"backbone": self.front_end.extractor.backbone}
             d = self.front_end.spatial_view
-            out["D"] = {"intervals": d.n_intervals, "templates": d.n_templates}
+            out["D"] = d.info()
             if d.config.calibration.enabled:  # what the run settled on
                 out["D"]["calibration"] = d.calibration.report()
         elif self.front_end.config.calibration.enabled:

@@ -19,7 +19,12 @@ def test_synthetic_world_a_ring_in_a_small_area():
     assert pc["odometry_bias"] == {"enabled": True, "samples_from": "templates", "forget_s": 5.0,
                                    "bidirectional": False}
     assert pc["odometry_gate"]["radius_m"] == 0.0
-    assert em == {"relaxation": "bias_walk", "exp_initial_em_deg": 0.0}
+    # experiences closer than the pose cells tell apart (2 cells of 0.3 m) merge into an earlier
+    # visit's (one at least 23.7 / 0.6 s before) once they are 23.7 / 0.3 s old (map_pruning.py)
+    assert em.keys() == {"relaxation", "exp_initial_em_deg", "prune_m", "prune_gap_s", "prune_age_s"}
+    assert math.isclose(em["prune_m"], 0.6) and math.isclose(em["prune_gap_s"], 39.5)
+    assert math.isclose(em["prune_age_s"], 79.0)
+    assert em["relaxation"] == "bias_walk" and em["exp_initial_em_deg"] == 0.0
 
 
 def test_tuc_corridor_there_and_back_in_a_long_area():
@@ -30,8 +35,14 @@ def test_tuc_corridor_there_and_back_in_a_long_area():
     assert math.isclose(pc["pc_cell_x_size"], 0.4)
     assert pc["odometry_bias"]["bidirectional"] is True
     assert math.isclose(pc["odometry_gate"]["radius_m"], 40.0) and pc["odometry_gate"]["drift"] == 0.1
-    # the same back end when the user gives the corridor's length as the loop
-    assert derived_back_end(speed_mps=0.4, shortest_loop_m=167.0, area_m=167.0) == s
+    # the same back end when the user gives the corridor's length as the loop, but for the map's
+    # pruning, whose earlier visit and settling time follow the loop
+    other = derived_back_end(speed_mps=0.4, shortest_loop_m=167.0, area_m=167.0)
+    assert other["pose_cells"] == pc
+    times = ("prune_gap_s", "prune_age_s")
+    assert {k: v for k, v in other["experience_map"].items() if k not in times} == \
+        {k: v for k, v in s["experience_map"].items() if k not in times}
+    assert math.isclose(other["experience_map"]["prune_age_s"], 167.0 / 0.4)
 
 
 def test_ring_boundary_and_gate_boundary():

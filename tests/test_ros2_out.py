@@ -197,7 +197,8 @@ def test_recorder_writes_outputs_mcap_readable_by_the_mcap_reader(tmp_path):
         _check_pose(d.pose.pose, x, y, th)
     # the same messages as the live output gets from the same topics
     conv = Ros2Messages(**params)
-    expected = list(replay(conv, rec.folder.templates, rec.folder.trajectory, None))
+    expected = list(replay(conv, *rec.folder.mcap_rows(), None))
+    assert [r.template_id for r in rec.folder.mcap_rows()[0]] == [100 + f for f in range(len(WALK))]
     assert [c.topic for _, c, _, _ in msgs] == [o.topic for o in expected]
     assert [m.data for _, _, m, _ in msgs] == [conv.serialize(o) for o in expected]
 

@@ -201,7 +201,10 @@ def derived_back_end(speed_mps: float = 0.5, shortest_loop_m: float = 10.0, area
                               "bidirectional": bool(shortest_loop_m <= RING_FACTOR * area_m)},
             "odometry_gate": {"radius_m": radius if radius < area_m else 0.0, "drift": GATE_DRIFT},
         },
-        "experience_map": {"relaxation": "bias_walk", "exp_initial_em_deg": 0.0},
+        "experience_map": {"relaxation": "bias_walk", "exp_initial_em_deg": 0.0,
+                           "prune_m": EXP_DELTA_PC_THRESHOLD * speed_mps * CELL_S,
+                           "prune_gap_s": shortest_loop_m / (2.0 * speed_mps),
+                           "prune_age_s": shortest_loop_m / speed_mps},
     }
 
 

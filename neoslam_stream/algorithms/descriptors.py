@@ -81,9 +81,17 @@ class IntervalDescriptors:
             return
         self._sum = d / norm if self._sum is None else self._sum + d / norm
 
-    def close_interval(self, slot: int) -> None:
-        """The open interval enters D's index as ``slot`` (slots come in order: ``slot == n``)."""
-        row = _as_int8(self._sum) if self._sum is not None else None
+    def open_row(self) -> np.ndarray | None:
+        """The open interval's row as it stands (None: none of its frames had a descriptor)."""
+        return _as_int8(self._sum) if self._sum is not None else None
+
+    def close_interval(self, slot: int, row: np.ndarray | None = None, given: bool = False) -> None:
+        """The open interval (``given``: the interval whose :meth:`open_row` was ``row``, kept
+        while it waited) enters D's index as ``slot`` (slots come in order: ``slot == n``). An
+        interval merged into a place never comes here: the place keeps the row of its first visit,
+        as it keeps that visit's union."""
+        if not given:
+            row = self.open_row()
         if row is not None and self._rows.shape[1] not in (0, row.shape[0]):
             raise ValueError(f"descriptor of length {row.shape[0]}, the intervals' have {self._rows.shape[1]}")
         width = row.shape[0] if row is not None else self._rows.shape[1]

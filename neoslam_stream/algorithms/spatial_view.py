@@ -14,7 +14,9 @@ confirms (``_confirm_duplicates``). Unlike the ROS 2 NeoSLAM, interval k's templ
 first frame opens interval 0 like any other. The scores come from
 :class:`~.interval_index.IntervalIndex`, which receives an interval when it closes (no candidate is
 younger than omega intervals); ``index_revisits: false`` keeps out an interval whose every frame
-closed onto an older place, so a route driven again and again keeps a bounded index.
+closed onto an older place, so a route driven again and again keeps a bounded index;
+``merge_revisits`` also merges a revisit's first, refused frames into the place they matched and
+forgets every interval that is no place (revisit_merge.py), so what D keeps grows with the places.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from .calibration import CalibrationConfig, PlatformConfig, RunCalibration
 from .descriptors import IntervalDescriptors
 from .errors import InvalidInput
 from .interval_index import IntervalIndex
+from .revisit_merge import DROP, EXPIRE, RevisitMerge, Stored
 from .sequence import SequenceConfig, SequenceFilter
 
 
@@ -72,12 +75,20 @@ class SpatialViewConfig(BaseModel):
     #: descriptors' cosines, the unrelated places' level and spread measured on n candidates
     #: spread evenly over the rest
     rerank_sample: int = Field(0, ge=0)
+    #: True: a new interval whose frame stands out on its own keeps the current template while the
+    #: stretch's evidence accumulates, the intervals a closure confirms merge into the place they
+    #: matched (never indexed), and intervals that are no place are forgotten (revisit_merge.py):
+    #: what D keeps per place stops growing once the place is known. Needs ``index_revisits:
+    #: false``. False: every refused interval makes a template and every interval is kept
+    merge_revisits: bool = False
 
     @model_validator(mode="after")
     def _pruning_needs_calibration(self) -> SpatialViewConfig:
         if not self.index_revisits and not self.calibration.enabled:
             raise ValueError("index_revisits: false needs calibration.enabled: true (the thresholded "
                              "rules count every interval)")
+        if self.merge_revisits and self.index_revisits:
+            raise ValueError("merge_revisits needs index_revisits: false (a merged revisit stays out of the index)")
         if self.rerank and not self.calibration.enabled:
             raise ValueError("rerank needs calibration.enabled: true (it re-ranks the calibrated decision's candidates)")
         return self
@@ -107,17 +118,26 @@ class SpatialViewCells:
         self.config = make_config(SpatialViewConfig, config, overrides)
         self.platform = platform or PlatformConfig()
         self.index = IntervalIndex(self.config.sdr_size)
-        self.unions: list[BitMap] = []
-        self.interval_start: list[int] = []
+        #: merge_revisits: what happens to a revisit's intervals (None: every interval is kept)
+        self.merge = RevisitMerge() if self.config.merge_revisits else None
+        # per interval k: its union Y_k, first and last frame, template and first stamp (a Stored
+        # holding the places and the recent intervals only, with merge_revisits)
+        self.unions: list[BitMap] = self._store()
+        self.interval_start: list[int] = self._store()
+        self.interval_end: list[int] = self._store()
+        self.interval_template: list[int] = self._store()
+        self.interval_stamps: list[float] = self._store()
         # the intervals in the index, in order (``indexed``; the index numbers them 0, 1, ...: its
-        # slots), in a store grown by doubling so that a frame reads them as a view
+        # slots) and their first stamps, in stores grown by doubling so that a frame reads them as views
         self._indexed = np.zeros(1024, dtype=np.int64)
+        self._place_stamps = np.zeros(1024, dtype=np.float64)
         self._n_indexed = 0
         #: whether every frame of the newest interval closed onto an older place
         self._all_closed = False
-        self._stamps = np.zeros(1024, dtype=np.float64)  # interval_stamp's store, grown by doubling
-        self.interval_end: list[int] = []
-        self.interval_template: list[int] = []
+        #: merge_revisits with rerank: the descriptor row of each closed interval waiting to be indexed
+        self._rows: dict[int, np.ndarray | None] = {}
+        #: the last frame's confidence in its best candidate (-inf: none)
+        self._confidence = -np.inf
         #: the frame each template was made on (the place's first visit): the sequence evidence of
         #: the calibrated decision is judged by it, not by the matched interval's own start
         self.template_start: list[int] = []
@@ -134,9 +154,18 @@ class SpatialViewCells:
         #: set by :meth:`new_session` until the session's first frame: the old sessions' last stamp
         self._old_last_stamp: float | None = None
 
+    def _store(self) -> Any:
+        return Stored() if self.merge is not None else []
+
     @property
     def n_intervals(self) -> int:
+        """The intervals made so far (with merge_revisits most are forgotten: ``n_stored``)."""
         return len(self.unions)
+
+    @property
+    def n_stored(self) -> int:
+        """The intervals whose union and figures D keeps."""
+        return self.unions.stored() if self.merge is not None else len(self.unions)
 
     @property
     def indexed(self) -> np.ndarray:
@@ -144,9 +173,10 @@ class SpatialViewCells:
         return self._indexed[:self._n_indexed]
 
     @property
-    def interval_stamp(self) -> np.ndarray:
-        """Each interval's first stamp (seconds; the frame number when frames come without stamps)."""
-        return self._stamps[:self.n_intervals]
+    def place_stamps(self) -> np.ndarray:
+        """The first stamp of each interval in the index, by slot (seconds; the frame number when
+        frames come without stamps)."""
+        return self._place_stamps[:self._n_indexed]
 
     def _validate(self, sdr: np.ndarray) -> np.ndarray:
         a = np.asarray(sdr)
@@ -167,7 +197,12 @@ class SpatialViewCells:
         y = self._validate(sdr)
         stamp = float(self.t if stamp is None else stamp)
         if self._old_last_stamp is not None:  # a new session's first frame: the old stamps move back
-            self._stamps[:self.n_intervals] += self.calibration.session_shift(self._old_last_stamp, stamp)
+            shift = self.calibration.session_shift(self._old_last_stamp, stamp)
+            keys = self.interval_stamps.keys() if isinstance(self.interval_stamps, Stored) \
+                else range(len(self.interval_stamps))
+            for k in keys:
+                self.interval_stamps[k] += shift
+            self._place_stamps[:self._n_indexed] += shift
             self._old_last_stamp = None
         y_bm = BitMap(y)
         new_interval = False
@@ -189,7 +224,7 @@ class SpatialViewCells:
             self.unions.append(y_bm)
             self.descriptors.open_interval()
             self.interval_start.append(self.t)
-            self._stamps = _put(self._stamps, k, stamp)
+            self.interval_stamps.append(stamp)
             self.interval_end.append(self.t)
             self.interval_template.append(-1)
         if cfg.rerank:
@@ -201,20 +236,26 @@ class SpatialViewCells:
             loop, best, best_score, second, second_score = self._calibrated(y, y_bm, stamp, descriptor)
         else:
             loop, best, best_score, second, second_score = self._thresholded(y)
+        held = False
         if loop:
             template = self.interval_template[best]
+        elif new_interval and self.merge is not None and self.current_template >= 0 and \
+                self.merge.may_hold(self.t, self._confidence, self.calibration.sequence_frames):
+            template, held = self.current_template, True  # the stretch may yet confirm a known place
         elif new_interval:
-            template = self.n_templates
-            self.n_templates += 1
-            self.template_start.append(self.t)
+            template = self._new_template(self.t)
         else:
             template = self.current_template
+        if self.merge is not None and (loop or (new_interval and not held)):
+            self.merge.end_hold()
         if new_interval:
             self.interval_template[-1] = template
         self._all_closed = bool(loop) and (new_interval or self._all_closed)
         if cfg.calibration.enabled:
-            self._confirm_duplicates(loop, new_interval and not loop, best)
+            self._confirm_duplicates(loop, new_interval and not loop, best, held)
         self.current_template = template
+        if self.merge is not None:
+            self._settle(self.t)
         self.t += 1
         out = {"id": template, "is_loop_closure": bool(loop), "best_interval": best if loop else -1,
                "best_score": best_score, "relative_rad": 0.0, "interval": self.n_intervals - 1,
@@ -224,15 +265,48 @@ class SpatialViewCells:
                                       else best_score - cfg.theta_sigma)
         return out
 
+    def _new_template(self, t: int) -> int:
+        template = self.n_templates
+        self.n_templates += 1
+        self.template_start.append(t)
+        return template
+
     def _close_interval(self, k: int) -> None:
         """Interval k is complete (k + 1 opens): into the index as its next slot, unless revisits
         stay out and every frame of k closed onto an older place. Such an interval's union is then
-        needed only as the view a moment ago for k + 1's frames, and is freed when k + 1 closes."""
+        needed only as the view a moment ago for k + 1's frames, and is freed when k + 1 closes.
+        With merge_revisits it waits for its stretch's verdict instead (:meth:`_settle`)."""
+        if self.merge is not None:
+            if self.config.rerank:
+                self._rows[k] = self.descriptors.open_row()
+            self.merge.close(k, self._all_closed)
+            return
         if k and not self.config.index_revisits and (not self._n_indexed or self.indexed[-1] != k - 1):
             self.unions[k - 1] = BitMap()  # interval k - 1 stayed out: nothing reads it any more
         if not self.config.index_revisits and self._all_closed:
             return
         self._index_interval(k)
+
+    def _settle(self, t: int, force: Any = None) -> None:
+        """merge_revisits: the closed intervals no closure can confirm any more (or that ``force``
+        says are candidates now) into the index, or dropped when they are a known place (a revisit,
+        merged, or held); the dropped ones' stores are forgotten once they are no longer the view a
+        moment ago (the newest but one)."""
+        assert self.merge is not None
+        for k, decision in self.merge.settle(t, self.calibration.sequence_frames, force):
+            if decision == EXPIRE and not self.merge.second_view(self.interval_template[k]):
+                decision = DROP
+            if decision == DROP:
+                self._rows.pop(k, None)
+                self.merge.dropped.append(k)
+            else:
+                self._index_interval(k)
+        dropped = self.merge.dropped
+        while dropped and dropped[0] < self.n_intervals - 2:
+            k = dropped.popleft()
+            for store in (self.unions, self.interval_start, self.interval_end, self.interval_template,
+                          self.interval_stamps):
+                store.forget(k)
 
     def _index_interval(self, k: int) -> None:
         """Interval k's union into the index as its next slot."""
@@ -241,8 +315,12 @@ class SpatialViewCells:
         self.index.post(cells, slot)
         self.index.store_union(slot, cells.astype(np.int64))
         if self.config.rerank:
-            self.descriptors.close_interval(slot)
+            if self.merge is not None:
+                self.descriptors.close_interval(slot, self._rows.pop(k, None), given=True)
+            else:
+                self.descriptors.close_interval(slot)
         self._indexed = _put(self._indexed, slot, k)
+        self._place_stamps = _put(self._place_stamps, slot, self.interval_stamps[k])
         self._n_indexed += 1
 
     def _thresholded(self, y: np.ndarray) -> tuple[bool, int, Any, int, Any]:
@@ -275,22 +353,27 @@ class SpatialViewCells:
         cal = self.calibration
         cal.on_stamp(stamp)
         k_all = self.n_intervals
-        limit = min(k_all - self.config.exclude_recent_intervals,
-                    int(np.searchsorted(self.interval_stamp, stamp - cal.min_gap_s, side="right")))
+        limit = k_all - self.config.exclude_recent_intervals
+        cutoff = stamp - cal.min_gap_s
+        if self.merge is not None:  # an interval that is a candidate now is decided first
+            self._settle(self.t, lambda k: k < limit and self.interval_stamps[k] <= cutoff)
+        # the indexed intervals k < limit opened a shortest loop ago (stamps grow with k)
+        slots = min(int(np.searchsorted(self.indexed, limit)),
+                    int(np.searchsorted(self.place_stamps, cutoff, side="right"))) if limit > 0 else 0
         best, best_score, second, second_score = -1, 0.0, -1, 0.0
         a = None
-        if limit > 0:
-            slots = int(np.searchsorted(self.indexed, limit))  # the indexed intervals k < limit
+        if slots > 0:
             which = self.indexed[:slots]
+            times = self.place_stamps[:slots]
             scores = self._normalised_scores(y, slots)
-            cal.note_distinctness("cells", cal.standing_out(scores, self.interval_stamp[which]))
+            cal.note_distinctness("cells", cal.standing_out(scores, times))
             if self.config.rerank_sample and descriptor is not None and self.descriptors.n:
-                a, which = self._assess_descriptors(scores, which, descriptor, stamp)
+                a, which = self._assess_descriptors(scores, which, times, descriptor, stamp)
                 if a is not None:
                     cal.note_distinctness("descriptors", a.z)
             else:
-                a = cal.assess(scores, self.interval_stamp[which],
-                               self._recent_score(y_bm) if k_all >= 2 else None, self._reranked(scores, descriptor))
+                a = cal.assess(scores, times, self._recent_score(y_bm) if k_all >= 2 else None,
+                               self._reranked(scores, descriptor))
             if a is not None:
                 best, best_score = int(which[a.best]), a.score
                 second, second_score = int(which[a.second]), a.second_score
@@ -298,7 +381,8 @@ class SpatialViewCells:
         # twice before has near-identical intervals from both visits, and the winner may flip
         # between them from frame to frame; their template is the same once the second closed
         place = self.template_start[self.interval_template[best]] if a is not None else -1
-        loop = cal.accept(self.t, place, a.confidence if a is not None else -np.inf)
+        self._confidence = a.confidence if a is not None else -np.inf
+        loop = cal.accept(self.t, place, self._confidence)
         cal.frame_done()
         self.runner_up = (second, second_score)
         return loop, best, best_score, second, second_score
@@ -320,8 +404,8 @@ class SpatialViewCells:
         votes = (c - c.mean()) / (c.std() + 1e-9) + (s - s.mean()) / (s.std() + 1e-9)
         return int(top[np.argmax(votes)])
 
-    def _assess_descriptors(self, scores: np.ndarray, which: np.ndarray, descriptor: np.ndarray,
-                            stamp: float) -> tuple[Any, np.ndarray]:
+    def _assess_descriptors(self, scores: np.ndarray, which: np.ndarray, times: np.ndarray,
+                            descriptor: np.ndarray, stamp: float) -> tuple[Any, np.ndarray]:
         """The calibrated decision on descriptors: the ``rerank`` best candidates by score and
         ``rerank_sample`` others spread evenly over the rest, scored by cosine; the winner the most
         alike of the first, judged against them all."""
@@ -339,21 +423,27 @@ class SpatialViewCells:
         best = int(np.argmax(np.where(np.arange(cand.shape[0]) < int(ok[:top.shape[0]].sum()), cos, -np.inf)))
         cal = self.calibration
         recent = self.descriptors.view_ago_cosine(descriptor, stamp, cal.seconds(cal.config.neighbourhood_m))
-        a = cal.assess(cos, self.interval_stamp[which[cand]], recent, best)
+        a = cal.assess(cos, times[cand], recent, best)
         return a, which[cand]
 
-    def _confirm_duplicates(self, loop: bool, made_template: bool, best: int) -> None:
+    def _confirm_duplicates(self, loop: bool, made_template: bool, best: int, held: bool = False) -> None:
         """A closure is accepted only after evidence over ``sequence_m`` of travel, so the first
-        frames of a revisit are refused and make new templates of a place that already has one.
-        When the evidence then confirms the revisit, each such template made within that stretch
-        is the place its frame matched: its interval takes that place's template, so that later
-        visits find one template there, not two that compete (their references would disagree).
+        frames of a revisit are refused and make new templates of a place that already has one
+        (or, with merge_revisits, hold the current one). When the evidence then confirms the
+        revisit, each such interval registered within that stretch is the place its frame matched:
+        it takes that place's template, so that later visits find one template there, not two that
+        compete (their references would disagree); with merge_revisits it never enters the index.
         The ids already sent stay valid; they are just not matched again."""
         if loop:
             for k, matched in self.calibration.confirmed(self.t):  # keys: the intervals
-                self.interval_template[k] = self.interval_template[matched]
+                if self.merge is None or k in self.interval_template:
+                    self.interval_template[k] = self.interval_template[matched]
+                    if self.merge is not None:
+                        self.merge.confirm(k)
         elif made_template and best >= 0:
             self.calibration.on_new_template(self.t, self.n_intervals - 1, best)
+            if self.merge is not None:
+                self.merge.register(self.n_intervals - 1, self.t, held)
 
     def _normalised_scores(self, y: np.ndarray, limit: int) -> np.ndarray:
         """s_k |y_t| / max(|Y_k|, |y_t|) of the index's slots < limit (a new array; the intervals
@@ -380,6 +470,15 @@ class SpatialViewCells:
             second_score = float(norm[second])
         return best, best_score, second, second_score
 
+    def info(self) -> dict[str, Any]:
+        """What D keeps and made: intervals made, stored and indexed, templates made; with
+        merge_revisits how many intervals were held, merged into a place, expired and dropped."""
+        out = {"intervals": self.n_intervals, "intervals_stored": self.n_stored, "indexed_intervals": self._n_indexed,
+               "templates": self.n_templates}
+        if self.merge is not None:
+            out["revisit_merge"] = dict(self.merge.counts)
+        return out
+
     def warm_up(self) -> None:
         """Compile (or load from numba's cache) the index's kernels now, not on a live frame."""
         self.index.warm_up()
@@ -400,55 +499,19 @@ class SpatialViewCells:
 
     # ---------------------------------------------------------------- state
     def state_dict(self) -> dict[str, Any]:
-        """The intervals, their unions and templates, the sequence filter's history, and the
-        parameters they were made with (``params``, in STATE_PARAMS order)."""
-        return {"params": [getattr(self.config, name) for name in STATE_PARAMS],
-                "unions": [np.asarray(u.to_array(), dtype=np.uint32) for u in self.unions],
-                "start": np.asarray(self.interval_start, np.int64), "end": np.asarray(self.interval_end, np.int64),
-                "template": np.asarray(self.interval_template, np.int64), "n_templates": self.n_templates,
-                "current_template": self.current_template, "t": self.t,
-                "sequence": self.sequence.state_dict(), "stamps": self.interval_stamp.copy(),
-                "calibration": self.calibration.state_dict(), "indexed": self.indexed.copy(),
-                "all_closed": self._all_closed, "descriptors": self.descriptors.state_dict()}
+        """The intervals D keeps (``stored``: their numbers, of ``n_intervals`` made), their unions
+        and templates, the sequence filter's history, and the parameters they were made with
+        (``params``, in STATE_PARAMS order): spatial_view_state.py."""
+        from .spatial_view_state import state_of
+
+        return state_of(self)
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore a :meth:`state_dict`; a state made with other parameters (``params``) is
-        refused, since its intervals would not be this config's."""
-        saved = state["params"]
-        if len(saved) != len(STATE_PARAMS):
-            raise ValueError(f"the state's params hold {len(saved)} values, expected {len(STATE_PARAMS)}: "
-                             f"{', '.join(STATE_PARAMS)}")
-        for name, value in zip(STATE_PARAMS, saved, strict=True):
-            ours = getattr(self.config, name)
-            if value != ours:
-                raise ValueError(f"spatial_view.{name}: the state was made with {value}, the config has "
-                                 f"{ours}; resume with the checkpoint's value or start afresh")
-        self.index.clear()
-        self.unions = [BitMap(np.asarray(arr, dtype=np.int32)) for arr in state["unions"]]
-        indexed = state["indexed"]
-        self._indexed = np.zeros(max(1024, len(indexed)), dtype=np.int64)
-        self._n_indexed = 0
-        for k in indexed:
-            self._index_interval(int(k))
-        self.index.compact()
-        self._all_closed = bool(state["all_closed"])
-        self.interval_start = [int(x) for x in state["start"]]
-        stamps = np.asarray(state["stamps"], dtype=np.float64)
-        self._stamps = np.zeros(max(1024, len(stamps)), dtype=np.float64)
-        self._stamps[:len(stamps)] = stamps
-        self.interval_end = [int(x) for x in state["end"]]
-        self.interval_template = [int(x) for x in state["template"]]
-        self.n_templates = int(state["n_templates"])
-        # a template is made when its first interval opens
-        self.template_start = [-1] * self.n_templates
-        for start, template in zip(self.interval_start, self.interval_template, strict=True):
-            if template >= 0 and self.template_start[template] < 0:
-                self.template_start[template] = start
-        self.current_template = int(state["current_template"])
-        self.t = int(state["t"])
-        self.sequence.load_state_dict(state["sequence"])
-        self.calibration.load_state_dict(state["calibration"])
-        self.descriptors.load_state_dict(state["descriptors"])
+        """Restore a :meth:`state_dict` (spatial_view_state.py); a state made with other parameters,
+        or one that forgot intervals (merge_revisits) when this config keeps every one, is refused."""
+        from .spatial_view_state import load_into
+
+        load_into(self, state)
 
 
 def _put(store: np.ndarray, k: int, value: Any) -> np.ndarray:

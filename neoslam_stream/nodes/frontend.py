@@ -190,8 +190,7 @@ class SpatialViewNode(FrontEndNode):
 
     def info(self) -> dict[str, Any]:
         d = self.core.spatial_view
-        out = {"intervals": d.n_intervals, "indexed_intervals": len(d.indexed), "templates": d.n_templates,
-               "loop_closures": self.loops}
+        out = {**d.info(), "loop_closures": self.loops}
         if d.config.calibration.enabled:  # what the run settled on (report.json)
             out["calibration"] = d.calibration.report()
         return out

@@ -225,7 +225,9 @@ class ExperienceMapNode(Node):
 
     def info(self) -> dict[str, Any]:
         return {"experiences": self.em.n_experiences, "links": self.em.n_links,
-                "repaired_actions": self.em.repaired_actions, "relax_ms_last": self.em.relax_time_s * 1e3}
+                "repaired_actions": self.em.repaired_actions, "relax_ms_last": self.em.relax_time_s * 1e3,
+                "solve_s_total": round(self.em.solve_s_total, 4),
+                **({"experiences_merged": len(self.em.merged)} if self.em.config.prune_m > 0 else {})}
 
     def state_dict(self) -> dict[str, Any]:
         return {"em": self.em.state_dict(), "last_frame": self.last_frame, "last_stamp": self.last_stamp}

@@ -10,7 +10,11 @@ Why it writes as it does (docs/reliability.md, docs/evaluation.md): row files ar
 row, each noted first in a journal (:data:`JOURNAL`: a line ``<tag> <frame>`` per row, the tag
 naming the file), so a killed worker loses no row and its restart neither loses nor doubles one;
 map.json and trajectory_map.tum are replaced atomically at the end. A closure row waits for its
-frame's ground truth (at most ``GT_WAIT_ROWS`` closures). An ``OSError`` (disk full) is logged once
+frame's ground truth (at most ``GT_WAIT_ROWS`` closures). With a run folder, a row is kept in
+memory only until it is in its file (the files are the record; a day's rows as Python objects would
+hold ~1 kB a frame, 100 MB an hour at 30 FPS): what the end needs of every frame is kept as numbers
+(:class:`NumberRows`), its pose in its experience's frame for trajectory_map.tum and, with an MCAP,
+its template and pose for outputs.mcap. An ``OSError`` (disk full) is logged once
 per file and counted; unwritten rows are retried at most every ``RETRY_S`` seconds and at the end,
 and what was written stays intact.
 """
@@ -27,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from ..algorithms.ratslam.experience_map import poses_on_map
+from ..algorithms.ratslam.map_pruning import compose
 from ..algorithms.records import MapPose, Template
 from ..runtime.files import AppendFile, complete_lines, describe_write_error, write_atomic
 from .run_rows import (
@@ -35,6 +40,7 @@ from .run_rows import (
     TEMPLATES,
     TRAJECTORY,
     ClosureRow,
+    NumberRows,
     PoseRow,
     RowFile,
     TemplateRow,
@@ -79,10 +85,15 @@ class RunFolder:
         #: the ROS 2 message parameters of outputs.mcap (None: no MCAP; nodes.ros2_out)
         self.mcap = mcap
         self.counters = counters if counters is not None else {}
-        self.rows: dict[RowFile, list] = {f: [] for f in ROW_FILES}
+        #: with an MCAP and a run folder: (frame, stamp, template, closure) of each template row and
+        #: (frame, stamp, x, y, theta, experience) of each pose row, what outputs.mcap is built from
+        self._mcap_rows = {TEMPLATES: NumberRows(4), TRAJECTORY: NumberRows(6)} if mcap else None
+        self.rows: dict[RowFile, deque] = {f: deque() for f in ROW_FILES}
+        #: rows accepted per file (what info() reports)
+        self.n_rows: dict[RowFile, int] = dict.fromkeys(ROW_FILES, 0)
         self.map_export: dict[str, Any] | None = None
-        #: frame -> (stamp, experience id, dx, dy, dtheta in its frame) for trajectory_map.tum
-        self.local_poses: dict[int, tuple[float, int, float, float, float]] = {}
+        #: per pose: frame, stamp, experience id, dx, dy, dtheta in its frame (trajectory_map.tum)
+        self._local = NumberRows(6)
         #: closure rows waiting for the ground truth of their frame
         self.closures_waiting: list[WaitingClosure] = []
         #: the frame that created each template / opened each of D's intervals
@@ -104,16 +115,29 @@ class RunFolder:
         self._logged: set[str] = set()
 
     @property
+    def _keep(self) -> bool:
+        """Whether every row is held: without a run folder (the host may set one after making this
+        writer); with one, rows are dropped once written (the module docstring)."""
+        return not self.run_dir
+
+    @property
     def templates(self) -> list[TemplateRow]:
-        return self.rows[TEMPLATES]
+        """The template rows held (every one in memory and with an MCAP; else the unwritten ones)."""
+        return list(self.rows[TEMPLATES])
 
     @property
     def trajectory(self) -> list[PoseRow]:
-        return self.rows[TRAJECTORY]
+        return list(self.rows[TRAJECTORY])
 
     @property
     def closures(self) -> list[ClosureRow]:
-        return self.rows[CLOSURES]
+        return list(self.rows[CLOSURES])
+
+    @property
+    def local_poses(self) -> np.ndarray:
+        """(frame, stamp, experience id, dx, dy, dtheta) of every pose, the latest of each frame,
+        in frame order."""
+        return self._local.latest_by_frame()
 
     # ------------------------------------------------------------------ what the cores give
     def on_template(self, frame: int, stamp: float, t: Template) -> None:
@@ -152,8 +176,7 @@ class RunFolder:
         experience's frame)."""
         x, y, th = (float(v) for v in p.pose)
         if p.local is not None:  # kept even for a frame written before a restart
-            dx, dy, dth = (float(v) for v in p.local)
-            self.local_poses[frame] = (stamp, int(p.exp_id), dx, dy, dth)
+            self._local.append((frame, stamp, int(p.exp_id), *(float(v) for v in p.local)))
         self._add(TRAJECTORY, PoseRow(frame, stamp, x, y, th, int(p.exp_id)))
 
     def on_groundtruth(self, frame: int, pose: Any) -> None:
@@ -190,14 +213,18 @@ class RunFolder:
                                            r.second_score, r.confidence))
 
     def _add(self, file: RowFile, row: Any) -> None:
+        if self._mcap_rows is not None and self.run_dir and file in self._mcap_rows:
+            self._mcap_rows[file].append(tuple(row[:4]) if file is TEMPLATES else tuple(row))
         if not self.run_dir:
             self.rows[file].append(row)
+            self.n_rows[file] += 1
             return
         self._open()
         if row.frame in self._written[file]:  # written before this worker was restarted
             self.counters["rows_already_written"] = self.counters.get("rows_already_written", 0) + 1
             return
         self.rows[file].append(row)
+        self.n_rows[file] += 1
         self._backlog.append((file, row.frame, file.line(row).encode()))
         if len(self._backlog) == 1 or time.monotonic() >= self._retry_at:
             self._write_backlog()
@@ -225,6 +252,8 @@ class RunFolder:
         # be opened) that are not in the files yet: all of them for new files
         self._backlog.clear()
         for f in ROW_FILES:
+            if not self._keep:  # held rows are the unwritten ones, in the backlog's order
+                self.rows[f] = deque(r for r in self.rows[f] if r.frame not in self._written[f])
             for r in self.rows[f]:
                 if r.frame not in self._written[f]:
                     self._backlog.append((f, r.frame, f.line(r).encode()))
@@ -302,6 +331,8 @@ class RunFolder:
                 self._failed(target.path, exc)
                 return
             self._backlog.popleft()
+            if not self._keep:  # in its file now: the row need not be held
+                self.rows[f].popleft()
 
     def _failed(self, path: Path, exc: OSError) -> None:
         self.counters["write_errors"] = self.counters.get("write_errors", 0) + 1
@@ -332,7 +363,7 @@ class RunFolder:
                 self._failed(f.path, exc)
         if self.map_export is not None:
             self._write_whole("map.json", json.dumps(self.map_export).encode())
-            if self.local_poses:
+            if self._local.n:
                 self._write_whole(TRAJECTORY_ON_MAP, self.trajectory_on_map().encode())
         if self.mcap is not None:
             self._write_mcap()
@@ -360,12 +391,14 @@ class RunFolder:
         format, in frame order)."""
         nodes = {int(n["id"]): (float(n["x"]), float(n["y"]), float(n["theta"]))
                  for n in (self.map_export or {}).get("nodes", [])}
-        frames = sorted(self.local_poses)
-        rows = [self.local_poses[f] for f in frames]
-        poses = poses_on_map(nodes, np.array([r[1] for r in rows], dtype=np.int64),
-                             np.array([r[2:] for r in rows], dtype=np.float64))
-        return "".join(trajectory_line(PoseRow(f, r[0], *p, -1))
-                       for f, r, p in zip(frames, rows, poses.tolist(), strict=True))
+        for e in (self.map_export or {}).get("merged", []):  # a merged experience: on the node it merged into
+            into = nodes.get(int(e["into"]))
+            if into is not None:
+                nodes[int(e["id"])] = compose(into, (float(e["dx"]), float(e["dy"]), float(e["dtheta"])))
+        rows = self.local_poses
+        poses = poses_on_map(nodes, rows[:, 2].astype(np.int64), rows[:, 3:])
+        return "".join(trajectory_line(PoseRow(int(f), float(t), *p, -1))
+                       for f, t, p in zip(rows[:, 0].tolist(), rows[:, 1].tolist(), poses.tolist(), strict=True))
 
     def _write_mcap(self) -> None:
         """outputs.mcap: the run's outputs as the ROS 2 messages of the live output, rebuilt from
@@ -373,7 +406,17 @@ class RunFolder:
         from .ros2_out import Ros2Messages, mcap_bytes, replay
 
         conv = Ros2Messages(**self.mcap)
-        self._write_whole(MCAP, mcap_bytes(conv, replay(conv, self.templates, self.trajectory, self.map_export)))
+        self._write_whole(MCAP, mcap_bytes(conv, replay(conv, *self.mcap_rows(), self.map_export)))
+
+    def mcap_rows(self) -> tuple[list[TemplateRow], list[PoseRow]]:
+        """The template and pose rows outputs.mcap is made of: those held, or with a run folder the
+        numbers kept of every row (the rows themselves were dropped once written)."""
+        if self._mcap_rows is None or self._keep:
+            return self.templates, self.trajectory
+        return ([TemplateRow(int(f), t, int(i), int(c), -1, -1)
+                 for f, t, i, c in self._mcap_rows[TEMPLATES].latest_by_frame().tolist()],
+                [PoseRow(int(f), t, x, y, th, int(e))
+                 for f, t, x, y, th, e in self._mcap_rows[TRAJECTORY].latest_by_frame().tolist()])
 
     def close(self) -> None:
         for f in [*(self._files or {}).values(), self._journal]:
@@ -382,8 +425,8 @@ class RunFolder:
         self._files, self._journal = None, None
 
     def info(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"template_rows": len(self.templates), "trajectory_rows": len(self.trajectory),
-                               "closure_rows": len(self.closures)}
+        out: dict[str, Any] = {"template_rows": self.n_rows[TEMPLATES], "trajectory_rows": self.n_rows[TRAJECTORY],
+                               "closure_rows": self.n_rows[CLOSURES]}
         if self._backlog:
             out["rows_not_written"] = len(self._backlog)
         return out
@@ -401,17 +444,18 @@ class RunFolder:
                                      for r in self.closures_waiting],
                 "template_first": ints(self.template_first), "interval_first": ints(self.interval_first),
                 "places": where(self.places), "gt": where(self.gt), "gt_last_frame": self.gt_last_frame,
-                "local_poses": np.array([(f, *r) for f, r in sorted(self.local_poses.items())],
-                                        dtype=np.float64).reshape(-1, 6),
+                "local_poses": self.local_poses.copy(),
+                **({"mcap_rows": [self._mcap_rows[f].latest_by_frame() for f in (TEMPLATES, TRAJECTORY)]}
+                   if self._mcap_rows is not None and not self._keep else {}),
                 "last_template_frame": self.last_template_frame}
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
-        self.rows[TEMPLATES] = [TemplateRow(int(r[0]), float(r[1]), int(r[2]), int(r[3]), int(r[4]), r[5])
-                                for r in st["templates"]]
-        self.rows[TRAJECTORY] = [PoseRow(int(r[0]), float(r[1]), float(r[2]), float(r[3]), float(r[4]), int(r[5]))
-                                 for r in st["trajectory"]]
-        self.rows[CLOSURES] = [ClosureRow(int(r[0]), float(r[1]), int(r[2]), int(r[3]),
-                                          None if r[4] is None else float(r[4]), r[5], r[6], r[7]) for r in st["closures"]]
+        self.rows[TEMPLATES] = deque(TemplateRow(int(r[0]), float(r[1]), int(r[2]), int(r[3]), int(r[4]), r[5])
+                                     for r in st["templates"])
+        self.rows[TRAJECTORY] = deque(PoseRow(int(r[0]), float(r[1]), float(r[2]), float(r[3]), float(r[4]), int(r[5]))
+                                      for r in st["trajectory"])
+        self.rows[CLOSURES] = deque(ClosureRow(int(r[0]), float(r[1]), int(r[2]), int(r[3]),
+                                          None if r[4] is None else float(r[4]), r[5], r[6], r[7]) for r in st["closures"])
         self.closures_waiting = [WaitingClosure(int(r[0]), float(r[1]), int(r[2]), int(r[3]),
                                                 None if r[4] is None else (float(r[4][0]), float(r[4][1])), r[5], r[6],
                                                 r[7])
@@ -421,8 +465,11 @@ class RunFolder:
         self.places = {int(r[0]): (float(r[1]), float(r[2]))
                        for r in np.asarray(st["places"], dtype=np.float64).reshape(-1, 3)}
         self.gt = {int(r[0]): (float(r[1]), float(r[2])) for r in np.asarray(st["gt"], dtype=np.float64).reshape(-1, 3)}
-        self.local_poses = {int(r[0]): (float(r[1]), int(r[2]), float(r[3]), float(r[4]), float(r[5]))
-                            for r in np.asarray(st["local_poses"], dtype=np.float64).reshape(-1, 6)}
+        self._local = NumberRows(6, st["local_poses"])
+        if self._mcap_rows is not None and "mcap_rows" in st:
+            self._mcap_rows = {f: NumberRows(w, a) for f, w, a in zip((TEMPLATES, TRAJECTORY), (4, 6), st["mcap_rows"],
+                                                                         strict=True)}
+        self.n_rows = {f: len(self.rows[f]) for f in ROW_FILES}
         self.gt_last_frame = int(st["gt_last_frame"])
         self.last_template_frame = int(st["last_template_frame"])
         self._first_frames = set(self.template_first.values()) | set(self.interval_first.values())
@@ -432,8 +479,12 @@ class RunFolder:
         be matched again, but a new session's frame numbers start afresh, so its first frames are
         no places of this one."""
         for f in ROW_FILES:
-            self.rows[f] = []
-        self.map_export, self.local_poses, self.closures_waiting = None, {}, []
+            self.rows[f] = deque()
+        self.n_rows = dict.fromkeys(ROW_FILES, 0)
+        self.map_export, self.closures_waiting = None, []
+        self._local = NumberRows(6)
+        if self._mcap_rows is not None:
+            self._mcap_rows = {TEMPLATES: NumberRows(4), TRAJECTORY: NumberRows(6)}
         self.template_first, self.interval_first, self.places, self.gt = {}, {}, {}, {}
         self._first_frames = set()
         self.gt_last_frame = self.last_template_frame = -1

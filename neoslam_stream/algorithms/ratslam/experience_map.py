@@ -9,7 +9,9 @@ relative_rad). After every action ``exp_loops`` Gauss-Seidel sweeps in node and 
 both ends of each link by ``exp_correction`` of its position and heading error; or, with
 ``relaxation: least_squares``, each new loop link re-solves the whole map exactly (graph_solve.py);
 with ``bias_walk``, as a pose graph whose yaw-rate bias wanders as far as the run measured
-(pose_graph.py).
+(pose_graph.py). With ``prune_m`` > 0 the map is then kept at a bounded density: experiences closer
+than that to an older one merge into it, their links rewired (map_pruning.py; Milford and Wyeth's
+pruning for persistent navigation).
 
 ``openratslam_compat=True`` keeps three C++ quirks that the default fixes (marked "fix n" below,
 tabled in docs/ratslam.md). The map maps the pose cells' experience ids onto its own indices, so a
@@ -40,6 +42,7 @@ from ..errors import InvalidInput
 from .actions import CREATE_EDGE, CREATE_NODE, SET_NODE
 from .angles import clip_pi
 from .graph_solve import relax_least_squares
+from .map_pruning import compose, prune
 from .pose_graph import bias_walk_weights, relax_pose_graph
 
 
@@ -68,9 +71,23 @@ class ExperienceMapConfig(BaseModel):
     walk_position_rel: float = Field(0.05, gt=0)
     #: bias_walk: a link's heading error variance per second of its duration, rad^2/s
     walk_heading_var: float = Field(2e-4, gt=0)
+    #: > 0 (metres): after each relaxation that followed a loop link, a settled experience closer
+    #: than this to an older one is merged into it and its links rewired (map_pruning.py): the map
+    #: grows with the places, not with the laps. 0: every experience stays (OpenRatSLAM)
+    prune_m: float = Field(0.0, ge=0)
+    #: with prune_m: an experience merges only into one made at least this many seconds of driving
+    #: before it (an earlier visit's; one visit's experiences are as far apart as the pose cells
+    #: made them). 0: into any older one
+    prune_gap_s: float = Field(0.0, ge=0)
+    #: with prune_m: an experience merges only once it is this many seconds of driving old (the
+    #: closures around it have placed it). 0: as soon as a cycle passes through it
+    prune_age_s: float = Field(0.0, ge=0)
 
     @model_validator(mode="after")
     def _robust_needs_sweeps(self) -> ExperienceMapConfig:
+        if self.prune_m > 0 and self.openratslam_compat:
+            raise ValueError("prune_m merges experiences, which OpenRatSLAM never does (set prune_m: 0 "
+                             "or openratslam_compat: false)")
         if self.relaxation != "sweeps" and self.exp_robust_m > 0:
             raise ValueError(f"exp_robust_m weights the sweeps' pulls; relaxation {self.relaxation} has none "
                              "(set exp_robust_m: 0 or relaxation: sweeps)")
@@ -179,7 +196,10 @@ class ExperienceMap:
     def __init__(self, config: ExperienceMapConfig | None = None, **overrides: Any) -> None:
         self.config = make_config(ExperienceMapConfig, config, overrides)
         self._nodes = np.zeros((0, 4))  # x, y, th, stamp
+        self._born = np.zeros(0)  # when each experience was made, in seconds of driving (``clock``)
         self._n = 0
+        #: seconds of odometry integrated by this map, over every session (what ``prune_gap_s`` reads)
+        self.clock = 0.0
         self._lf = np.zeros((0, 2), dtype=np.int64)  # from, to (indices)
         self._lv = np.zeros((0, 4))  # d, heading, facing, delta_time_s
         self._m = 0
@@ -196,6 +216,12 @@ class ExperienceMap:
         #: the yaw-rate bias's wander (rad^2/s^3) the bias estimator measured; 0: not measured
         self.bias_wander = 0.0
         self._loop_linked = False  # a link to an experience that existed: least squares re-solves
+        self._prune_due = False  # a loop link came since the last pruning
+        #: merged experience id -> (the id it merged into, its pose dx, dy, dtheta in that one's frame)
+        self.merged: dict[int, tuple[int, float, float, float]] = {}
+        self.prune_time_s = 0.0
+        #: seconds spent in solves and prunings since the map was made (the map's cost, summed)
+        self.solve_s_total = 0.0
 
     @property
     def cfg(self) -> ExperienceMapConfig:
@@ -248,6 +274,7 @@ class ExperienceMap:
         self.accum_dx += vtrans * math.cos(self.accum_facing)
         self.accum_dy += vtrans * math.sin(self.accum_facing)
         self.accum_t += dt
+        self.clock += dt
 
     def _idx(self, exp_id: int) -> int:
         i = self.index.get(int(exp_id), -1)
@@ -264,6 +291,8 @@ class ExperienceMap:
         i = self._n
         self._nodes = _grow(self._nodes, i + 1)
         self._nodes[i] = (cx + self.accum_dx, cy + self.accum_dy, clip_pi(self.accum_facing), stamp)
+        self._born = _grow(self._born, i + 1)
+        self._born[i] = self.clock
         self._n += 1
         self.ids.append(exp_id)
         self.index[exp_id] = i
@@ -294,6 +323,7 @@ class ExperienceMap:
         self._m += 1
         self.link_set.add((a, b))
         self._loop_linked |= closes_loop
+        self._prune_due |= closes_loop
 
     def _join(self, a: int, b: int, d: float, heading: float, facing: float) -> None:
         """Link a -> b (``d``, ``heading``, ``facing`` relative to a) joins two parts: the newer part
@@ -356,7 +386,10 @@ class ExperienceMap:
         dst, src = int(dst), int(src)
         if action not in (CREATE_NODE, CREATE_EDGE, SET_NODE):
             raise InvalidInput(f"unknown action {action}")
-        if dst not in self.index:
+        if dst in self.merged:
+            self.repaired_actions += int(action == CREATE_NODE)
+            self._arrive_merged(dst, action != SET_NODE, rel_rad)
+        elif dst not in self.index:
             self.repaired_actions += int(action != CREATE_NODE)
             self.create_experience(dst, stamp)
         elif action in (CREATE_NODE, CREATE_EDGE):
@@ -371,6 +404,45 @@ class ExperienceMap:
         else:
             self._set(self.index[dst], rel_rad)
         self.iterate()
+
+    def resolve(self, exp_id: int) -> tuple[int, tuple[float, float, float]]:
+        """A merged experience's survivor (its index) and its pose in the survivor's frame,
+        following merges of survivors (map_pruning.py); an experience that is on the map: itself
+        and (0, 0, 0)."""
+        off = (0.0, 0.0, 0.0)
+        e = int(exp_id)
+        while e in self.merged:
+            into, *o = self.merged[e]
+            off = compose(tuple(o), off)
+            e = into
+        return self._idx(e), off
+
+    def _arrive_merged(self, exp_id: int, link: bool, rel_rad: float) -> None:
+        """An action to a merged experience e_j = e_i (+) o_j: the link from the current experience
+        goes to e_i with dead reckoning shifted by o_j^-1, and dead reckoning then starts at o_j in
+        e_i's frame (where e_j lies), as arriving at e_j itself would."""
+        i, o = self.resolve(exp_id)
+        if link and self._cur >= 0 and self._cur != i:
+            heading = self.accum_facing + rel_rad - o[2]  # e_i's heading, by dead reckoning
+            c, s = math.cos(heading), math.sin(heading)
+            self.accum_dx -= c * o[0] - s * o[1]
+            self.accum_dy -= s * o[0] + c * o[1]
+            self.accum_facing -= o[2]
+            self._link(self._cur, i, rel_rad)
+        th = float(self._nodes[i, 2])
+        c, s = math.cos(th), math.sin(th)
+        self._cur = i
+        self.accum_dx, self.accum_dy = c * o[0] - s * o[1], s * o[0] + c * o[1]
+        self.accum_t = 0.0
+        self.accum_facing = clip_pi(th + o[2] + rel_rad)
+
+    def prune(self) -> int:
+        """Merge each settled experience closer than ``prune_m`` to an older surviving one into it
+        (:func:`.map_pruning.prune`). Returns how many were merged."""
+        t0 = time.perf_counter()
+        merged = prune(self)
+        self.prune_time_s = time.perf_counter() - t0
+        return merged
 
     def iterate(self) -> None:
         """One relaxation: exp_loops sequential sweeps with exp_correction (numba), or with
@@ -399,6 +471,11 @@ class ExperienceMap:
         self._loop_linked = False  # solved (the sweeps never read it)
         nodes[: self._n, 0], nodes[: self._n, 1], nodes[: self._n, 2] = x, y, th
         self.relax_time_s = time.perf_counter() - t0
+        self.solve_s_total += self.relax_time_s
+        if self.config.prune_m > 0 and self._prune_due:
+            self._prune_due = False
+            self.prune()
+            self.solve_s_total += self.prune_time_s
 
     # ---------------------------------------------------------------- poses and export
     def current_pose(self) -> tuple[float, float, float]:
@@ -428,7 +505,11 @@ class ExperienceMap:
     def node_poses(self) -> dict[int, tuple[float, float, float]]:
         """Every experience's pose on the map now, id -> (x, y, theta): what :func:`poses_on_map`
         re-expresses the recorded :meth:`local_pose` rows on (the final map, once the run ends)."""
-        return {i: (x, y, th) for i, (x, y, th) in zip(self.ids, self._nodes[: self._n, :3].tolist(), strict=True)}
+        out = {i: (x, y, th) for i, (x, y, th) in zip(self.ids, self._nodes[: self._n, :3].tolist(), strict=True)}
+        for e in self.merged:  # a merged experience lies at its pose in its survivor's frame
+            i, o = self.resolve(e)
+            out[e] = compose(tuple(self._nodes[i, :3].tolist()), o)
+        return out
 
     @staticmethod
     def warm_up() -> None:
@@ -438,16 +519,28 @@ class ExperienceMap:
                z[:1].copy(), z[:1].copy(), 1, 0.5, 0.0)
 
     def export(self) -> dict[str, Any]:
-        """Nodes (id, x, y, theta, creation stamp) and links (from, to, d, heading, facing, dt)."""
-        return {"nodes": [{"id": self.ids[i], "x": float(x), "y": float(y), "theta": float(t), "stamp": float(s)}
-                          for i, (x, y, t, s) in enumerate(self._nodes[: self._n].tolist())],
-                "links": [{"from": a, "to": b, "d": d, "heading": h, "facing": f, "dt": t}
-                          for a, b, d, h, f, t in self.links]}
+        """Nodes (id, x, y, theta, creation stamp) and links (from, to, d, heading, facing, dt);
+        with pruning, ``merged``: each merged experience, the node it lies on and its pose in that
+        node's frame (what re-expresses a frame recorded on it, :func:`poses_on_map`)."""
+        out: dict[str, Any] = {
+            "nodes": [{"id": self.ids[i], "x": float(x), "y": float(y), "theta": float(t), "stamp": float(s)}
+                      for i, (x, y, t, s) in enumerate(self._nodes[: self._n].tolist())],
+            "links": [{"from": a, "to": b, "d": d, "heading": h, "facing": f, "dt": t}
+                      for a, b, d, h, f, t in self.links]}
+        if self.merged:
+            out["merged"] = []
+            for e in sorted(self.merged):
+                i, (dx, dy, dth) = self.resolve(e)
+                out["merged"].append({"id": e, "into": self.ids[i], "dx": dx, "dy": dy, "dtheta": dth})
+        return out
 
     def state_dict(self) -> dict[str, Any]:
         return {"nodes": self._nodes[: self._n].copy(), "ids": np.array(self.ids, dtype=np.int64),
                 "lf": self._lf[: self._m].copy(), "lv": self._lv[: self._m].copy(),
-                "scalars": [self._cur, self.accum_dx, self.accum_dy, self.accum_t, self.accum_facing]}
+                "scalars": [self._cur, self.accum_dx, self.accum_dy, self.accum_t, self.accum_facing],
+                "merged_ids": np.array([[e, v[0]] for e, v in self.merged.items()], dtype=np.int64).reshape(-1, 2),
+                "merged_pose": np.array([v[1:] for v in self.merged.values()], dtype=np.float64).reshape(-1, 3),
+                "prune_due": self._prune_due, "born": self._born[: self._n].copy(), "clock": self.clock}
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
         self._nodes = np.array(st["nodes"], dtype=float).reshape(-1, 4)
@@ -463,3 +556,9 @@ class ExperienceMap:
         # the parts follow from the links
         adjacency = sp.csr_matrix((np.ones(self._m), (self._lf[:, 0], self._lf[:, 1])), shape=(self._n, self._n))
         self.part = connected_components(adjacency, directed=False)[1].tolist() if self._n else []
+        ids, pose = np.asarray(st["merged_ids"]), np.asarray(st["merged_pose"])
+        self.merged = {int(e): (int(i), *map(float, o)) for (e, i), o in zip(ids.reshape(-1, 2).tolist(),
+                                                                            pose.reshape(-1, 3).tolist(), strict=True)}
+        self._prune_due = bool(st["prune_due"])
+        self._born = np.array(st["born"], dtype=float).reshape(-1)
+        self.clock = float(st["clock"])

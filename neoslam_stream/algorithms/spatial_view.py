@@ -493,7 +493,11 @@ class SpatialViewCells:
         evidence starts afresh. Frame numbers (``t``) continue."""
         if self.n_intervals:
             last = self.calibration.last_stamp
-            self._old_last_stamp = float(self.interval_stamp[-1] if last is None else last)
+            if last is None:  # the newest interval D still keeps (merge_revisits may forget some)
+                keys = self.interval_stamps.keys() if isinstance(self.interval_stamps, Stored) \
+                    else range(len(self.interval_stamps))
+                last = max(self.interval_stamps[k] for k in keys)
+            self._old_last_stamp = float(last)
         self.calibration.new_session()
         self.descriptors.new_session()  # the views a moment ago were the old stream's
 

@@ -43,6 +43,7 @@ from .run_rows import (
     NumberRows,
     PoseRow,
     RowFile,
+    rows_written_before,
     TemplateRow,
     WaitingClosure,
     trajectory_line,
@@ -111,6 +112,10 @@ class RunFolder:
         self._backlog: deque[tuple[RowFile, int, bytes]] = deque()
         #: after a restart, the frames each file held already (rows for them are not written again)
         self._written: dict[RowFile, set[int]] = {f: set() for f in ROW_FILES}
+        #: rows in each file (what a checkpoint counts: a run resumed elsewhere begins with them)
+        self._in_file: dict[RowFile, int] = dict.fromkeys(ROW_FILES, 0)
+        #: from a checkpoint: (its run folder, rows in each file by tag), copied into new files
+        self._carry: tuple[str, dict[str, int]] | None = None
         self._retry_at = 0.0
         self._logged: set[str] = set()
 
@@ -260,14 +265,33 @@ class RunFolder:
         self._write_backlog()
 
     def _create(self) -> None:
+        lines, entries = self._carried()  # read before the files are cut (the same folder, resumed)
         if self.run_id:
             self._journal = AppendFile(self._path(JOURNAL), truncate=True)
             self._journal.append(f"run {self.run_id}\n".encode())
+            for tag, frame in entries:
+                self._journal.append(f"{tag} {frame}\n".encode())
         files = {f: AppendFile(self._path(f.name), truncate=True) for f in ROW_FILES}
         for f in ROW_FILES:
             if f.header:
                 files[f].append(f.header.encode())
+            for line in lines.get(f.tag, []):
+                files[f].append(line)
+            self._in_file[f] = len(lines.get(f.tag, []))
         self._files = files
+
+    def _carried(self) -> tuple[dict[str, list[bytes]], list[tuple[str, int]]]:
+        """Resumed from a checkpoint: the rows its run folder held then, which begin this run's files."""
+        if self._carry is None:
+            return {}, []
+        folder, counts = self._carry
+        self._carry = None
+        try:
+            return rows_written_before(folder, counts, JOURNAL)
+        except OSError as exc:
+            log.error("recorder: the rows written before the checkpoint could not be read (%s); this run's "
+                      "files begin at the checkpoint", exc)
+            return {}, []
 
     def _reopen(self, journal: list[bytes]) -> None:
         """A restart of this run's worker: keep the complete rows the journal knows, cut the rest."""
@@ -302,6 +326,7 @@ class RunFolder:
                 seen[f] += 1
                 kept.append((f, frame))
                 self._written[f].add(frame)
+        self._in_file = dict(keep)
         write_atomic(self._path(JOURNAL),
                      (f"run {self.run_id}\n" + "".join(f"{f.tag} {n}\n" for f, n in kept)).encode())
         self._journal = AppendFile(self._path(JOURNAL))
@@ -331,6 +356,7 @@ class RunFolder:
                 self._failed(target.path, exc)
                 return
             self._backlog.popleft()
+            self._in_file[f] += 1
             if not self._keep:  # in its file now: the row need not be held
                 self.rows[f].popleft()
 
@@ -447,7 +473,9 @@ class RunFolder:
                 "local_poses": self.local_poses.copy(),
                 **({"mcap_rows": [self._mcap_rows[f].latest_by_frame() for f in (TEMPLATES, TRAJECTORY)]}
                    if self._mcap_rows is not None and not self._keep else {}),
-                "last_template_frame": self.last_template_frame}
+                "last_template_frame": self.last_template_frame, "n_rows": {f.tag: self.n_rows[f] for f in ROW_FILES},
+                **({"run_dir": str(Path(self.run_dir).resolve()),
+                    "rows_in_files": {f.tag: self._in_file[f] for f in ROW_FILES}} if self.run_dir else {})}
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
         self.rows[TEMPLATES] = deque(TemplateRow(int(r[0]), float(r[1]), int(r[2]), int(r[3]), int(r[4]), r[5])
@@ -469,7 +497,9 @@ class RunFolder:
         if self._mcap_rows is not None and "mcap_rows" in st:
             self._mcap_rows = {f: NumberRows(w, a) for f, w, a in zip((TEMPLATES, TRAJECTORY), (4, 6), st["mcap_rows"],
                                                                          strict=True)}
-        self.n_rows = {f: len(self.rows[f]) for f in ROW_FILES}
+        self.n_rows = {f: int(st["n_rows"][f.tag]) for f in ROW_FILES}
+        self._carry = (st["run_dir"], {k: int(v) for k, v in st["rows_in_files"].items()}) \
+            if "rows_in_files" in st else None
         self.gt_last_frame = int(st["gt_last_frame"])
         self.last_template_frame = int(st["last_template_frame"])
         self._first_frames = set(self.template_first.values()) | set(self.interval_first.values())

@@ -9,9 +9,12 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
+
+from ..runtime.files import complete_lines
 
 TEMPLATES_HEADER = "frame,stamp,template_id,is_loop_closure,best_interval,best_score\n"
 #: one row per match flagged as a loop closure (the evaluation tells loop closures from
@@ -138,3 +141,30 @@ class NumberRows:
         rows = self._a[:self.n]
         _, last = np.unique(rows[::-1, 0], return_index=True)
         return rows[::-1][last]
+
+
+def rows_written_before(run_dir: str, counts: dict[str, int], journal: str
+                        ) -> tuple[dict[str, list[bytes]], list[tuple[str, int]]]:
+    """What a checkpoint's run folder held when the checkpoint was cut, for a run resumed from it
+    into another folder (``--resume``): the first ``counts[tag]`` rows of each row file (without
+    its header), and the journal entries ``(tag, frame)`` naming them, in their order. A checkpoint
+    keeps no written row (the files are the record), so a resumed run's files begin with these."""
+    folder = Path(run_dir)
+    lines: dict[str, list[bytes]] = {}
+    for f in ROW_FILES:
+        path = folder / f.name
+        rows = complete_lines(path) if path.exists() else []
+        if f.header and rows and rows[0] == f.header.encode():
+            rows = rows[1:]
+        if len(rows) < counts.get(f.tag, 0):
+            raise FileNotFoundError(f"{path} holds {len(rows)} rows, the checkpoint counted {counts[f.tag]}")
+        lines[f.tag] = rows[:counts.get(f.tag, 0)]
+    entries, seen = [], dict.fromkeys(counts, 0)
+    path = folder / journal
+    for raw in (complete_lines(path)[1:] if path.exists() else []):
+        parts = raw.split()
+        tag = parts[0].decode(errors="replace") if len(parts) == 2 else ""
+        if tag in seen and parts[1].isdigit() and seen[tag] < counts[tag]:
+            seen[tag] += 1
+            entries.append((tag, int(parts[1])))
+    return lines, entries

@@ -126,6 +126,34 @@ class IntervalDescriptors:
         out[ok] = dots[ok] / (norms[ok] * qn)
         return out
 
+    def vote(self, scores: np.ndarray, descriptor: np.ndarray, k: int) -> int | None:
+        """Of the k best slots by ``scores``, the one whose score and descriptor cosine, each
+        standardised over those k, sum highest (ties: the better score): the cells and the finer
+        descriptor both vote, so a view that only the descriptor finds alike (the same scene seen
+        from elsewhere) does not win on it alone. None when no candidate has a descriptor."""
+        top = np.argsort(-scores, kind="stable")[:k]
+        cos = self.cosines(descriptor, top)
+        ok = ~np.isnan(cos)
+        if not ok.any():
+            return None
+        top, c, s = top[ok], cos[ok], scores[top[ok]]
+        votes = (c - c.mean()) / (c.std() + 1e-9) + (s - s.mean()) / (s.std() + 1e-9)
+        return int(top[np.argmax(votes)])
+
+    def sampled(self, scores: np.ndarray, descriptor: np.ndarray, k: int,
+                n: int) -> tuple[np.ndarray, np.ndarray, int]:
+        """The k best slots by ``scores`` then n others spread evenly over the rest (a sample of
+        how alike unrelated places look), with their cosines; slots without a descriptor dropped.
+        Returns (slots, cosines, how many of the first k remain, which come first)."""
+        order = np.argsort(-scores, kind="stable")
+        top, rest = order[:k], np.sort(order[k:])
+        if rest.shape[0] > n:
+            rest = rest[np.linspace(0, rest.shape[0] - 1, n).astype(np.int64)]
+        cand = np.concatenate([top, rest])
+        cos = self.cosines(descriptor, cand)
+        ok = ~np.isnan(cos)
+        return cand[ok], cos[ok], int(ok[:top.shape[0]].sum())
+
     def warm_up(self) -> None:
         """Compile the dot-product kernel now, not on a live frame."""
         _int8_dots(np.zeros((1, 1), np.int8), np.zeros(1, np.int64), np.zeros(1, np.int8), np.zeros(1, np.int64))

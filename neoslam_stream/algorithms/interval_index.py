@@ -263,6 +263,25 @@ class IntervalIndex:
             return self.top2_exhaustive(y, limit)
         return self.top2_bounded(y, limit)
 
+    def normalised_scores(self, y: np.ndarray, limit: int) -> np.ndarray:
+        """s_k |y_t| / max(|Y_k|, |y_t|) of the slots < limit (a new array): a long interval's
+        union, which overlaps everything a little, is no hub (``union_normalised``)."""
+        n = len(y)
+        return self.all_scores(y)[:limit] * (n / np.maximum(self.union_sizes(limit), n))
+
+    def top2_normalised(self, y: np.ndarray, limit: int) -> tuple[int, float, int, float]:
+        """The top two slots < limit by :meth:`normalised_scores` (ties: lowest index), with their
+        normalised scores."""
+        norm = self.normalised_scores(y, limit)
+        best = int(np.argmax(norm))  # first maximum = lowest index
+        best_score = float(norm[best])
+        second, second_score = -1, 0.0
+        if limit > 1:
+            norm[best] = -1.0
+            second = int(np.argmax(norm))
+            second_score = float(norm[second])
+        return best, best_score, second, second_score
+
     def top2_exhaustive(self, y: np.ndarray, limit: int) -> tuple[int, int, int, int]:
         """Every s_k from the whole index, every posting counted: the reference."""
         cand = self.all_scores(y, rows=False)[:limit]

@@ -334,7 +334,7 @@ class SpatialViewCells:
         second, second_score = -1, 0
         if limit > 0:
             if cfg.union_normalised:
-                best, best_score, second, second_score = self._top2_normalised(y, limit)
+                best, best_score, second, second_score = self.index.top2_normalised(y, limit)
             else:
                 best, best_score, second, second_score = self.index.top2(y, limit)
         self.runner_up = (second, second_score)
@@ -365,7 +365,7 @@ class SpatialViewCells:
         if slots > 0:
             which = self.indexed[:slots]
             times = self.place_stamps[:slots]
-            scores = self._normalised_scores(y, slots)
+            scores = self.index.normalised_scores(y, slots)
             cal.note_distinctness("cells", cal.standing_out(scores, times))
             if self.config.rerank_sample and descriptor is not None and self.descriptors.n:
                 a, which = self._assess_descriptors(scores, which, times, descriptor, stamp)
@@ -388,39 +388,24 @@ class SpatialViewCells:
         return loop, best, best_score, second, second_score
 
     def _reranked(self, scores: np.ndarray, descriptor: np.ndarray | None) -> int | None:
-        """With ``rerank`` k: of the k best candidates by score, the one whose score and descriptor
-        cosine, each standardised over those k, sum highest (ties: the better score): the cells and
-        the finer descriptor both vote, so a view that only the descriptor finds alike (the same
-        scene seen from elsewhere) does not win on it alone. None when off or no descriptor can tell."""
+        """With ``rerank`` k: the candidate the cells and the descriptor together vote best of the
+        k best by score (:meth:`IntervalDescriptors.vote`). None when off or no descriptor can tell."""
         k = self.config.rerank
         if not k or descriptor is None or scores.shape[0] == 0:
             return None
-        top = np.argsort(-scores, kind="stable")[:k]
-        cos = self.descriptors.cosines(descriptor, top)
-        ok = ~np.isnan(cos)
-        if not ok.any():
-            return None
-        top, c, s = top[ok], cos[ok], scores[top[ok]]
-        votes = (c - c.mean()) / (c.std() + 1e-9) + (s - s.mean()) / (s.std() + 1e-9)
-        return int(top[np.argmax(votes)])
+        return self.descriptors.vote(scores, descriptor, k)
 
     def _assess_descriptors(self, scores: np.ndarray, which: np.ndarray, times: np.ndarray,
                             descriptor: np.ndarray, stamp: float) -> tuple[Any, np.ndarray]:
         """The calibrated decision on descriptors: the ``rerank`` best candidates by score and
-        ``rerank_sample`` others spread evenly over the rest, scored by cosine; the winner the most
-        alike of the first, judged against them all."""
-        k, n = self.config.rerank, self.config.rerank_sample
-        order = np.argsort(-scores, kind="stable")
-        top, rest = order[:k], np.sort(order[k:])
-        if rest.shape[0] > n:
-            rest = rest[np.linspace(0, rest.shape[0] - 1, n).astype(np.int64)]
-        cand = np.concatenate([top, rest])
-        cos = self.descriptors.cosines(descriptor, cand)
-        ok = ~np.isnan(cos)
-        cand, cos = cand[ok], cos[ok]
-        if not np.any(ok[:top.shape[0]]):
+        ``rerank_sample`` others spread over the rest, scored by cosine
+        (:meth:`IntervalDescriptors.sampled`); the winner the most alike of the first, judged
+        against them all."""
+        cand, cos, n_top = self.descriptors.sampled(scores, descriptor, self.config.rerank,
+                                                    self.config.rerank_sample)
+        if n_top == 0:
             return None, which
-        best = int(np.argmax(np.where(np.arange(cand.shape[0]) < int(ok[:top.shape[0]].sum()), cos, -np.inf)))
+        best = int(np.argmax(cos[:n_top]))
         cal = self.calibration
         recent = self.descriptors.view_ago_cosine(descriptor, stamp, cal.seconds(cal.config.neighbourhood_m))
         a = cal.assess(cos, times[cand], recent, best)
@@ -445,30 +430,11 @@ class SpatialViewCells:
             if self.merge is not None:
                 self.merge.register(self.n_intervals - 1, self.t, held)
 
-    def _normalised_scores(self, y: np.ndarray, limit: int) -> np.ndarray:
-        """s_k |y_t| / max(|Y_k|, |y_t|) of the index's slots < limit (a new array; the intervals
-        ``indexed[:limit]``): a long interval's union, which overlaps everything a little, is no hub."""
-        n = len(y)
-        return self.index.all_scores(y)[:limit] * (n / np.maximum(self.index.union_sizes(limit), n))
-
     def _recent_score(self, y_bm: BitMap) -> float:
         """The normalised score of the interval before the newest: the view a moment ago."""
         n = len(y_bm)
         union = self.unions[self.n_intervals - 2]
         return union.intersection_cardinality(y_bm) * (n / max(len(union), n))
-
-    def _top2_normalised(self, y: np.ndarray, limit: int) -> tuple[int, float, int, float]:
-        """The top two candidates k < limit by s_k |y_t| / max(|Y_k|, |y_t|) (``union_normalised``;
-        ties: lowest index), with their normalised scores."""
-        norm = self._normalised_scores(y, limit)
-        best = int(np.argmax(norm))  # first maximum = lowest index
-        best_score = float(norm[best])
-        second, second_score = -1, 0.0
-        if limit > 1:
-            norm[best] = -1.0
-            second = int(np.argmax(norm))
-            second_score = float(norm[second])
-        return best, best_score, second, second_score
 
     def info(self) -> dict[str, Any]:
         """What D keeps and made: intervals made, stored and indexed, templates made; with

@@ -33,7 +33,6 @@ from typing import Any, Literal
 
 import numpy as np
 import scipy.sparse as sp
-from numba import njit
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 from scipy.sparse.csgraph import connected_components
 
@@ -44,6 +43,7 @@ from .angles import clip_pi
 from .graph_solve import relax_least_squares
 from .map_pruning import compose, prune
 from .pose_graph import bias_walk_weights, relax_pose_graph
+from .sweeps import relax_sweeps
 
 
 class ExperienceMapConfig(BaseModel):
@@ -97,63 +97,6 @@ class ExperienceMapConfig(BaseModel):
 def signed_delta(a1: float, a2: float) -> float:
     """Signed smallest rotation from a1 to a2."""
     return clip_pi(a2 - a1)
-
-
-@njit(cache=True)
-def _clip(a):  # pragma: no cover - compiled
-    while a > math.pi:
-        a -= 2 * math.pi
-    while a <= -math.pi:
-        a += 2 * math.pi
-    return a
-
-
-@njit(cache=True)
-def _relax(x, y, th, lfrom, lto, ld, lhead, lface, loops, corr, robust=0.0):  # pragma: no cover - compiled
-    """exp_loops Gauss-Seidel sweeps: experiences in index order, each one's outgoing links in
-    insertion order (a counting sort of the link list by source keeps that order). ``robust`` > 0:
-    each link's correction is scaled by the Cauchy weight robust^2 / (robust^2 + r^2) of its
-    current position error r (ExperienceMapConfig.exp_robust_m). A sweep that changes nothing
-    ends the relaxation: the next would start from the same state and change nothing either (a map
-    without a loop closure is such a fixed point, whose sweeps were all wasted)."""
-    n = x.shape[0]
-    m = lfrom.shape[0]
-    ptr = np.zeros(n + 1, np.int64)
-    for li in range(m):
-        ptr[lfrom[li] + 1] += 1
-    for i in range(n):
-        ptr[i + 1] += ptr[i]
-    fill = ptr[:n].copy()
-    order = np.empty(m, np.int64)
-    for li in range(m):
-        order[fill[lfrom[li]]] = li
-        fill[lfrom[li]] += 1
-    for _ in range(loops):
-        changed = False
-        for e0 in range(n):
-            for p in range(ptr[e0], ptr[e0 + 1]):
-                li = order[p]
-                e1 = lto[li]
-                lx = x[e0] + ld[li] * math.cos(th[e0] + lhead[li])
-                ly = y[e0] + ld[li] * math.sin(th[e0] + lhead[li])
-                c = corr
-                if robust > 0.0:
-                    r2 = (x[e1] - lx) ** 2 + (y[e1] - ly) ** 2
-                    c = corr * robust * robust / (robust * robust + r2)
-                dx = (x[e1] - lx) * c
-                dy = (y[e1] - ly) * c
-                before = (x[e0], y[e0], x[e1], y[e1], th[e0], th[e1])
-                x[e0] += dx
-                y[e0] += dy
-                x[e1] -= dx
-                y[e1] -= dy
-                df = _clip(th[e1] - (th[e0] + lface[li]))
-                th[e0] = _clip(th[e0] + df * c)
-                th[e1] = _clip(th[e1] - df * c)
-                if not changed and before != (x[e0], y[e0], x[e1], y[e1], th[e0], th[e1]):
-                    changed = True
-        if not changed:
-            break
 
 
 def poses_on_map(nodes: dict[int, tuple[float, float, float]], exp_ids: np.ndarray,
@@ -458,7 +401,7 @@ class ExperienceMap:
         x, y, th = nodes[: self._n, 0].copy(), nodes[: self._n, 1].copy(), nodes[: self._n, 2].copy()
         lf, lv = self._lf[: self._m], self._lv[: self._m]
         if not solve:
-            _relax(x, y, th, np.ascontiguousarray(lf[:, 0]), np.ascontiguousarray(lf[:, 1]),
+            relax_sweeps(x, y, th, np.ascontiguousarray(lf[:, 0]), np.ascontiguousarray(lf[:, 1]),
                    np.ascontiguousarray(lv[:, 0]), np.ascontiguousarray(lv[:, 1]), np.ascontiguousarray(lv[:, 2]),
                    self.config.exp_loops, self.config.exp_correction, self.config.exp_robust_m)
         elif self.config.relaxation == "bias_walk" and self.bias_wander > 0:
@@ -515,7 +458,7 @@ class ExperienceMap:
     def warm_up() -> None:
         """Compile (or load from numba's cache) the relaxation kernel before the first frame."""
         z = np.zeros(2)
-        _relax(z.copy(), z.copy(), z.copy(), np.zeros(1, np.int64), np.ones(1, np.int64), z[:1].copy(),
+        relax_sweeps(z.copy(), z.copy(), z.copy(), np.zeros(1, np.int64), np.ones(1, np.int64), z[:1].copy(),
                z[:1].copy(), z[:1].copy(), 1, 0.5, 0.0)
 
     def export(self) -> dict[str, Any]:

@@ -157,6 +157,11 @@ class SpatialViewCells:
     def _store(self) -> Any:
         return Stored() if self.merge is not None else []
 
+    def _kept(self) -> Any:
+        """The numbers k of the intervals whose stores D still holds."""
+        return self.interval_stamps.keys() if isinstance(self.interval_stamps, Stored) \
+            else range(len(self.interval_stamps))
+
     @property
     def n_intervals(self) -> int:
         """The intervals made so far (with merge_revisits most are forgotten: ``n_stored``)."""
@@ -198,9 +203,7 @@ class SpatialViewCells:
         stamp = float(self.t if stamp is None else stamp)
         if self._old_last_stamp is not None:  # a new session's first frame: the old stamps move back
             shift = self.calibration.session_shift(self._old_last_stamp, stamp)
-            keys = self.interval_stamps.keys() if isinstance(self.interval_stamps, Stored) \
-                else range(len(self.interval_stamps))
-            for k in keys:
+            for k in self._kept():
                 self.interval_stamps[k] += shift
             self._place_stamps[:self._n_indexed] += shift
             self._old_last_stamp = None
@@ -460,9 +463,7 @@ class SpatialViewCells:
         if self.n_intervals:
             last = self.calibration.last_stamp
             if last is None:  # the newest interval D still keeps (merge_revisits may forget some)
-                keys = self.interval_stamps.keys() if isinstance(self.interval_stamps, Stored) \
-                    else range(len(self.interval_stamps))
-                last = max(self.interval_stamps[k] for k in keys)
+                last = max(self.interval_stamps[k] for k in self._kept())
             self._old_last_stamp = float(last)
         self.calibration.new_session()
         self.descriptors.new_session()  # the views a moment ago were the old stream's

@@ -43,9 +43,9 @@ from .run_rows import (
     NumberRows,
     PoseRow,
     RowFile,
-    rows_written_before,
     TemplateRow,
     WaitingClosure,
+    rows_written_before,
     trajectory_line,
 )
 

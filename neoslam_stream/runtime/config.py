@@ -44,7 +44,7 @@ class BusConfig(Strict):
     #: over several hosts (docs/hosts.md); every other process stays on `host`
     router_listen: list[str] = Field(default_factory=list)
     #: zenoh shared memory for large payloads. Off: at camera rates it gains little per message and
-    #: its first use in each process stalls the pipeline (docs/performance.md)
+    #: its first use in each process stalls the pipeline (docs/runtime.md)
     shm: bool = False
     #: a zenoh json5 config file for settings neoslam does not make itself (TLS certificates,
     #: access control; see docs/reliability.md); neoslam's endpoints, mode and scouting-off apply on top

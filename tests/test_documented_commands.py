@@ -72,11 +72,9 @@ VALIDATE = {
     "neoslam bench throughput --backbone random_alexnet --rates 30 --duration 300 --topology pipeline --out bench/results/throughput",
     "neoslam bench throughput --rates 30,45,60 --duration 30 --topology both --out bench/results/throughput_default",
     "neoslam bench throughput --rates 60 --duration 300 --topology pipeline "
-    "--out bench/results/throughput_default_60fps_5min_x3/run1",
+    "--out bench/results/throughput_default_60fps_5min/run1",
     "neoslam bench throughput --rates 60 --duration 300 --topology pipeline "
-    "--out bench/results/throughput_default_60fps_5min_x3/run2",
-    "neoslam bench throughput --rates 60 --duration 300 --topology pipeline "
-    "--out bench/results/throughput_default_60fps_5min_x3/run3",
+    "--out bench/results/throughput_default_60fps_5min/run2",
     "neoslam bench throughput --backbone random_alexnet --rates 30,45,60 --duration 30 --topology pipeline --projection sparse "
     "--out bench/results/throughput_sparse",
     "neoslam bench throughput --backbone random_alexnet --rates \"\" --scaling 20000 --out bench/results/throughput",

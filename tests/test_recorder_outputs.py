@@ -112,6 +112,38 @@ def test_a_recorder_restarted_from_a_checkpoint_adds_the_rows_of_its_state_not_w
     assert trajectory == exp_p  # 10, 11: neither written nor in the restored state
 
 
+def test_a_run_resumed_into_another_folder_begins_with_the_rows_its_checkpoint_had(tmp_path):
+    """A checkpoint holds no written row (the files are the record): resumed elsewhere, the new
+    folder's files begin with the rows the checkpoint's folder held when it was cut, not with
+    those written after it, and its journal names them (a restart there keeps them)."""
+    part = tmp_path / "part"
+    first = _recorder(part, "run-1")
+    _feed(first, range(8))
+    state = first.state_dict()  # the checkpoint, at frame 7
+    _feed(first, range(8, 11))  # written after it, then stopped
+    first.flush()
+    first.close()
+    resumed = _recorder(tmp_path / "resumed", "run-2")
+    resumed.load_state_dict(state)
+    _feed(resumed, range(8, 13))  # the resumed run replays from frame 8
+    resumed.flush()
+    resumed.close()
+    assert _files(tmp_path / "resumed") == _expected(tmp_path, list(range(13)))
+    journal = (tmp_path / "resumed" / JOURNAL).read_text().splitlines()
+    closures = (tmp_path / "resumed" / "closures.csv").read_text().splitlines()[1:]
+    assert journal[0] == "run run-2"
+    assert [sum(e.startswith(tag + " ") for e in journal) for tag in "tpc"] == [13, 13, len(closures)]
+    assert len(closures) == len([f for f in range(13) if f % 3 == 0])  # _template_msg's closures
+    # a new session on that state is this session's outputs only
+    today = _recorder(tmp_path / "today", "run-3")
+    today.load_state_dict(state)
+    today.new_session()
+    _feed(today, range(3))
+    today.flush()
+    today.close()
+    assert _files(tmp_path / "today") == _expected(tmp_path, list(range(3)))
+
+
 def test_a_new_run_in_the_same_folder_starts_the_files_afresh(tmp_path):
     run = tmp_path / "run"
     first = _recorder(run, "run-1")

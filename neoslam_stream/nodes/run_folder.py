@@ -518,3 +518,4 @@ class RunFolder:
         self.template_first, self.interval_first, self.places, self.gt = {}, {}, {}, {}
         self._first_frames = set()
         self.gt_last_frame = self.last_template_frame = -1
+        self._carry = None  # an old session's rows are not this session's

@@ -30,7 +30,7 @@ It writes:
 (once), so that the record shows an outage and its reopening.
 
 Run: ``.venv/bin/python bench/camera_soak.py [--duration 3600] [--rate 30] [--every 10]
-[--kill-server-at S] [--out bench/results/camera_soak.json]``
+[--kill-server-at S] [--platform-speed MPS] [--out bench/results/camera_soak.json]``
 """
 
 from __future__ import annotations
@@ -419,6 +419,10 @@ def main() -> None:
     ap.add_argument("--kill-server-at", type=float, metavar="S",
                     help="stop the stream S seconds after its first frame, once (default: never)")
     ap.add_argument("--outage-s", type=float, default=5.0, help="how long --kill-server-at stops it (5 s)")
+    ap.add_argument("--platform-speed", type=float, metavar="MPS",
+                    help="the run's platform.speed_mps (default: the shipped default's). The route was "
+                         "recorded at 10 Hz, so served at --rate FPS it moves rate / 10 times as fast: "
+                         "0.9 at 30 FPS says what a user of that camera would")
     ap.add_argument("--keep-trace", action="store_true",
                     help="keep the run's trace.json (an hour's is ~300 MB; deleted once read by default)")
     ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "camera_soak.json"))
@@ -437,6 +441,10 @@ def main() -> None:
         shutil.rmtree(run_dir)
     cmd = [sys.executable, "-m", "neoslam_stream.cli", "run", "--source", "camera", "-p", f"url={server.url}",
            "--duration", f"{args.duration:g}", "--no-live", "--trace", str(trace), "--out", str(run_dir)]
+    if args.platform_speed is not None:  # a config of one's own: applied on top of the shipped default
+        overlay = work / "platform.yaml"
+        overlay.write_text(f"platform:\n  speed_mps: {args.platform_speed:g}\n")
+        cmd += ["-c", str(overlay)]
     done = threading.Event()
     kill: dict[str, Any] = {}
     if args.kill_server_at is not None:
@@ -463,6 +471,7 @@ def main() -> None:
     # monotonic clock; the stages read the wall clock: they agree unless the wall clock was stepped
     clock_step = (time.time() - time.monotonic()) - clock0
     extra = {"command": " ".join(cmd[1:]), "exit_code": rc, "route": route, "kill_server": kill or None,
+             "platform_speed_mps": args.platform_speed,
              "clock_step_s": round(clock_step, 6)}
     res = analyse(run_dir, trace, server, sampler.samples, args, extra)
     if trace.exists() and not args.keep_trace:

@@ -71,6 +71,7 @@ VALIDATE = {
     "--out bench/results/throughput",
     "neoslam bench throughput --backbone random_alexnet --rates 30 --duration 300 --topology pipeline --out bench/results/throughput",
     "neoslam bench throughput --rates 30,45,60 --duration 30 --topology both --out bench/results/throughput_default",
+    "neoslam bench throughput --rates 60 --duration 300 --topology pipeline",
     "neoslam bench throughput --rates 60 --duration 300 --topology pipeline "
     "--out bench/results/throughput_default_60fps_5min/run1",
     "neoslam bench throughput --rates 60 --duration 300 --topology pipeline "

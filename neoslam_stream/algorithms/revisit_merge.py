@@ -17,11 +17,11 @@ With ``spatial_view.merge_revisits`` (docs/long_runs.md):
   a refused frame's new template) is the place its frame matched (``_confirm_duplicates``), and it
   never enters D's index: the place is there already, from its first visit, with its own union and
   descriptor row;
-* **expire**: a held interval that no closure confirmed within its stretch is dropped as well: its
-  frame stood out on its own as a place D knows, so that place is there already (a template of its
-  own would be a second one, and the two would compete on every later visit, as the references
-  of their frames would disagree); if it was a new place after all, the frames after the hold,
-  which make templates again, stand for it;
+* **expire**: a held interval that no closure confirmed within its stretch was a view of the place
+  the robot had just been at: the first such one of a place enters the index as that place's
+  second view (under the held template, the one its frames were sent with), later ones are
+  dropped (a template of its own would be a second place where there is one, and the two would
+  compete on every later visit, as the references of their frames would disagree);
 * **forget**: an interval that does not enter the index (a revisit whose every frame closed, or
   one merged) is dropped from D's per-interval stores once it is no longer the view a moment ago.
 

@@ -158,9 +158,8 @@ class SpatialViewCells:
         return Stored() if self.merge is not None else []
 
     def _kept(self) -> Any:
-        """The numbers k of the intervals whose stores D still holds."""
-        return self.interval_stamps.keys() if isinstance(self.interval_stamps, Stored) \
-            else range(len(self.interval_stamps))
+        """The numbers k of the intervals whose stores D still holds (in order)."""
+        return self.interval_stamps.keys() if self.merge is not None else range(self.n_intervals)
 
     @property
     def n_intervals(self) -> int:

@@ -17,7 +17,7 @@ def state_of(d: Any) -> dict[str, Any]:
     """The intervals D keeps (``stored``: their numbers, of ``n_intervals`` made), their unions
     and templates, the sequence filter's history, and the parameters they were made with
     (``params``, in STATE_PARAMS order)."""
-    keys = d.unions.keys() if d.merge is not None else range(d.n_intervals)
+    keys = d._kept()
     return {"params": [getattr(d.config, name) for name in STATE_PARAMS],
             "n_intervals": d.n_intervals, "stored": np.asarray(keys, np.int64),
             "unions": [np.asarray(d.unions[k].to_array(), dtype=np.uint32) for k in keys],

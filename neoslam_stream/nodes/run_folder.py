@@ -30,8 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from ..algorithms.ratslam.experience_map import poses_on_map
-from ..algorithms.ratslam.map_pruning import compose
+from ..algorithms.ratslam.experience_map import export_node_poses, poses_on_map
 from ..algorithms.records import MapPose, Template
 from ..runtime.files import AppendFile, complete_lines, describe_write_error, write_atomic
 from .run_rows import (
@@ -415,12 +414,7 @@ class RunFolder:
     def trajectory_on_map(self) -> str:
         """trajectory_map.tum's text: the frames' poses on the final map (``trajectory.tum``'s
         format, in frame order)."""
-        nodes = {int(n["id"]): (float(n["x"]), float(n["y"]), float(n["theta"]))
-                 for n in (self.map_export or {}).get("nodes", [])}
-        for e in (self.map_export or {}).get("merged", []):  # a merged experience: on the node it merged into
-            into = nodes.get(int(e["into"]))
-            if into is not None:
-                nodes[int(e["id"])] = compose(into, (float(e["dx"]), float(e["dy"]), float(e["dtheta"])))
+        nodes = export_node_poses(self.map_export or {})
         rows = self.local_poses
         poses = poses_on_map(nodes, rows[:, 2].astype(np.int64), rows[:, 3:])
         return "".join(trajectory_line(PoseRow(int(f), float(t), *p, -1))

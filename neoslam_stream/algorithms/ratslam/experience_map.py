@@ -119,6 +119,18 @@ def poses_on_map(nodes: dict[int, tuple[float, float, float]], exp_ids: np.ndarr
     return out
 
 
+def export_node_poses(export: dict[str, Any]) -> dict[int, tuple[float, float, float]]:
+    """Every experience's pose on an exported map (:meth:`ExperienceMap.export`, map.json), id ->
+    (x, y, theta): the nodes, and each merged experience at its pose in the frame of the node it
+    merged into: what :func:`poses_on_map` re-expresses recorded poses on."""
+    nodes = {int(n["id"]): (float(n["x"]), float(n["y"]), float(n["theta"])) for n in export.get("nodes", [])}
+    for e in export.get("merged", []):
+        into = nodes.get(int(e["into"]))
+        if into is not None:
+            nodes[int(e["id"])] = compose(into, (float(e["dx"]), float(e["dy"]), float(e["dtheta"])))
+    return nodes
+
+
 def _grow(a: np.ndarray, n: int) -> np.ndarray:
     """``a`` with room for at least n rows (capacity doubles, so appends are amortised O(1))."""
     if n <= a.shape[0]:
@@ -448,11 +460,7 @@ class ExperienceMap:
     def node_poses(self) -> dict[int, tuple[float, float, float]]:
         """Every experience's pose on the map now, id -> (x, y, theta): what :func:`poses_on_map`
         re-expresses the recorded :meth:`local_pose` rows on (the final map, once the run ends)."""
-        out = {i: (x, y, th) for i, (x, y, th) in zip(self.ids, self._nodes[: self._n, :3].tolist(), strict=True)}
-        for e in self.merged:  # a merged experience lies at its pose in its survivor's frame
-            i, o = self.resolve(e)
-            out[e] = compose(tuple(self._nodes[i, :3].tolist()), o)
-        return out
+        return export_node_poses(self.export())
 
     @staticmethod
     def warm_up() -> None:

@@ -245,15 +245,13 @@ def main() -> None:
         else (work / "day", work / "lap3")
     probe = load_config(args.config or "default", {"source": {"params": {"loop": True}}})
     route, gt = route_of(probe)
-    wall = None
     if not args.from_run:
         for d in (run_dir, lap3_dir):
             shutil.rmtree(d, ignore_errors=True)
         print(f"lap 3's state: {3 * route} frames, lossless", flush=True)
         run(day_config(args.config, 3, None, route), lap3_dir)
         print(f"the day: {args.duration or 0:g} s of wall time / {args.laps or 0} laps", flush=True)
-        res_run = run(day_config(args.config, args.laps, args.duration, route), run_dir)
-        wall = res_run.report.get("duration_s")
+        run(day_config(args.config, args.laps, args.duration, route), run_dir)  # its report.json, read below
     report = json.loads((run_dir / "report.json").read_text())
     frames = int(report.get("frames_out") or 0)
     closures, new_templates = closures_by_lap(run_dir, route)
@@ -278,7 +276,7 @@ def main() -> None:
         "config": args.config or "default", "route_frames": route, "frames": frames,
         "frames_lost": report.get("frames_in", frames) - frames if report.get("mode") != "lossless" else 0,
         "loss": report.get("loss"), "errors": report.get("errors"),
-        "wall_s": wall or report.get("duration_s") or 0.0,
+        "wall_s": report.get("duration_s") or 0.0,
         "hours_of_30fps_driving": round(frames / 30.0 / 3600, 3),
         "frames_per_s": report.get("f_out_hz") or report.get("f_out"),
         "export_bytes_lap3": export_size(lap3_dir, work / "lap3.neoslam") if (lap3_dir / "report.json").exists() else None,

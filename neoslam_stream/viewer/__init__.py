@@ -49,11 +49,7 @@ def view(run_dir: str | Path, save: str | Path | None = None, window: bool | Non
     (default: when a display is there and no ``save`` was given); ``wait_s``: wait this long for
     the run to start (``run --view`` starts the viewer with the run)."""
     run_dir = Path(run_dir)
-    deadline = time.monotonic() + wait_s
-    while not (run_dir / "endpoints.json").exists() and time.monotonic() < deadline:
-        time.sleep(0.1)
-    if not run_dir.is_dir():
-        raise FileNotFoundError(f"no run folder {run_dir}")
+    _wait_for_run(run_dir, wait_s)
     if window is None:
         window = save is None and has_display()
     out = Path(save) if save is not None else run_dir / "view.rrd"
@@ -67,9 +63,7 @@ def view(run_dir: str | Path, save: str | Path | None = None, window: bool | Non
                 log.warning("cannot attach to the run in %s (%s); showing its files", run_dir, exc)
                 live = False
         if not live:
-            if not any((run_dir / f).exists() for f in ("templates.csv", "trajectory.tum", "timeline.csv")):
-                raise FileNotFoundError(f"{run_dir} has no run outputs (templates.csv, trajectory.tum, "
-                                        f"timeline.csv) and no running run (endpoints.json)")
+            _require_outputs(run_dir)
             log_run_folder(run_dir, rv)
     finally:
         rv.close()
@@ -77,11 +71,19 @@ def view(run_dir: str | Path, save: str | Path | None = None, window: bool | Non
 
 
 def _wait_for_run(run_dir: Path, wait_s: float) -> None:
+    """Wait up to ``wait_s`` for the run to start (its endpoints.json); the folder must exist."""
     deadline = time.monotonic() + wait_s
     while not (run_dir / "endpoints.json").exists() and time.monotonic() < deadline:
         time.sleep(0.1)
     if not run_dir.is_dir():
         raise FileNotFoundError(f"no run folder {run_dir}")
+
+
+def _require_outputs(run_dir: Path) -> None:
+    """A run folder that is not running must hold a run's outputs to be shown."""
+    if not any((run_dir / f).exists() for f in ("templates.csv", "trajectory.tum", "timeline.csv")):
+        raise FileNotFoundError(f"{run_dir} has no run outputs (templates.csv, trajectory.tum, timeline.csv) "
+                                f"and no running run (endpoints.json)")
 
 
 def foxglove_settings(run_dir: Path) -> Any:
@@ -112,9 +114,8 @@ def serve_foxglove(run_dir: str | Path, listen: str, speed: float = 1.0, duratio
     host, port = parse_listen(listen)
     _wait_for_run(run_dir, wait_s)
     live = is_running(run_dir)
-    if not live and not any((run_dir / f).exists() for f in ("templates.csv", "trajectory.tum", "timeline.csv")):
-        raise FileNotFoundError(f"{run_dir} has no run outputs (templates.csv, trajectory.tum, timeline.csv) "
-                                f"and no running run (endpoints.json)")
+    if not live:
+        _require_outputs(run_dir)
     cfg = foxglove_settings(run_dir)
     fv = FoxgloveView(host, port, f"neoslam {run_dir.name}", cfg.image_max_side, cfg.jpeg_quality,
                       cfg.path_max_poses, cfg.backlog)

@@ -47,6 +47,20 @@ def _bgr(image: np.ndarray | None, encoding: str, compressed: bytes | None) -> n
         return None
 
 
+def encode_jpeg(bgr: np.ndarray, max_side: int, quality: int) -> bytes | None:
+    """BGR pixels as a JPEG of at most ``max_side`` pixels a side (shrunk by area averaging), or
+    None when OpenCV cannot encode them."""
+    import cv2
+
+    bgr = np.ascontiguousarray(bgr)
+    h, w = bgr.shape[:2]
+    scale = max_side / max(h, w)
+    if scale < 1.0:
+        bgr = cv2.resize(bgr, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA)
+    ok, jpeg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, quality])
+    return jpeg.tobytes() if ok else None
+
+
 class CameraLog:
     """The thinned JPEG frames of a run (module docstring); :meth:`add` per published frame."""
 
@@ -64,23 +78,16 @@ class CameraLog:
             compressed: bytes | None = None) -> None:
         if self.period_s <= 0 or (self.last_stamp is not None and stamp - self.last_stamp < self.period_s):
             return
-        import cv2
-
         bgr = _bgr(image, encoding, compressed)
         if bgr is None:
             self.unreadable += 1
             return
         self.last_stamp = stamp
-        h, w = bgr.shape[:2]
-        scale = self.max_side / max(h, w)
-        if scale < 1.0:
-            bgr = cv2.resize(bgr, (max(1, round(w * scale)), max(1, round(h * scale))),
-                             interpolation=cv2.INTER_AREA)
-        ok, jpeg = cv2.imencode(".jpg", np.ascontiguousarray(bgr), [cv2.IMWRITE_JPEG_QUALITY, self.quality])
-        if not ok:
+        jpeg = encode_jpeg(bgr, self.max_side, self.quality)
+        if jpeg is None:
             self.unreadable += 1
             return
-        self.frames.append((int(frame), float(stamp), jpeg.tobytes()))
+        self.frames.append((int(frame), float(stamp), jpeg))
         if len(self.frames) > self.max_frames:  # thinned evenly: every second frame, twice the period
             self.frames = self.frames[::2]
             self.period_s *= 2

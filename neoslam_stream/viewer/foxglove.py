@@ -223,18 +223,13 @@ class FoxgloveView:
     def image(self, frame: int, stamp: float | None, rgb: np.ndarray) -> None:
         """A camera frame (RGB pixels): JPEG of at most ``image_max_side`` pixels, when a client
         watches the camera."""
-        import cv2
+        from ..runtime.camera_log import encode_jpeg
 
         if not self.channels["/camera/image"].has_sinks():
             return
-        bgr = np.ascontiguousarray(np.asarray(rgb)[:, :, ::-1])
-        h, w = bgr.shape[:2]
-        scale = self.image_max_side / max(h, w)
-        if scale < 1.0:
-            bgr = cv2.resize(bgr, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA)
-        ok, jpeg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
-        if ok:
-            self.jpeg(frame, stamp, jpeg.tobytes())
+        jpeg = encode_jpeg(np.asarray(rgb)[:, :, ::-1], self.image_max_side, self.jpeg_quality)
+        if jpeg is not None:
+            self.jpeg(frame, stamp, jpeg)
 
     def jpeg(self, frame: int, stamp: float | None, data: bytes) -> None:
         """A camera frame already JPEG-encoded (camera.zip)."""

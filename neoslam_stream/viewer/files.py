@@ -8,6 +8,7 @@ import json
 import logging
 import zipfile
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -68,23 +69,42 @@ def log_run_folder(run_dir: str | Path, view: RunView) -> None:
             log.warning("map.json not shown: %s", exc)
 
 
-def log_camera_and_log_lines(run_dir: Path, view: RunView) -> None:
-    """camera.zip's frames and log.jsonl's lines (either may be missing or damaged: skipped)."""
+def read_camera(run_dir: Path) -> list[tuple[int, float, bytes]]:
+    """camera.zip's (frame, stamp, JPEG) frames; none when it is missing, those before the damage
+    when it is damaged (logged once: the rest of the run is shown)."""
     from ..runtime.camera_log import CAMERA_FILE, read_camera_zip
 
+    out: list[tuple[int, float, bytes]] = []
     if (run_dir / CAMERA_FILE).exists():
         try:
             for frame, stamp, jpeg in read_camera_zip(run_dir / CAMERA_FILE):
-                view.jpeg(frame, stamp, jpeg)
-        except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:  # damaged: the rest is shown
+                out.append((frame, stamp, jpeg))
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:
             log.warning("%s not shown: %s", run_dir / CAMERA_FILE, exc)
-    path = run_dir / "log.jsonl"
-    lines = path.read_text(errors="replace").splitlines() if path.exists() else []
-    for line in lines:
+    return out
+
+
+def read_log_lines(path: Path) -> list[dict[str, Any]]:
+    """log.jsonl's records with a ``t_s`` (lines that are no JSON object are skipped)."""
+    out = []
+    if path.exists():
+        for line in path.read_text(errors="replace").splitlines():
+            try:
+                row = json.loads(line)
+            except ValueError:
+                continue
+            if isinstance(row, dict) and row.get("t_s") is not None:
+                out.append(row)
+    return out
+
+
+def log_camera_and_log_lines(run_dir: Path, view: RunView) -> None:
+    """camera.zip's frames and log.jsonl's lines (either may be missing or damaged: skipped)."""
+    for frame, stamp, jpeg in read_camera(run_dir):
+        view.jpeg(frame, stamp, jpeg)
+    for r in read_log_lines(run_dir / "log.jsonl"):
         try:
-            r = json.loads(line)
-            if isinstance(r, dict) and r.get("t_s") is not None:
-                view.log_line(float(r["t"]), str(r["level"]), str(r["process"]), str(r["name"]), str(r["message"]))
+            view.log_line(float(r["t"]), str(r["level"]), str(r["process"]), str(r["name"]), str(r["message"]))
         except (ValueError, KeyError, TypeError):
             continue
 

@@ -14,33 +14,19 @@ from __future__ import annotations
 import json
 import logging
 import time
-import zipfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from .files import _read_csv, _read_tum, timeline_rates
+from .files import _read_csv, _read_tum, read_camera, read_log_lines, timeline_rates
 
 log = logging.getLogger("neoslam.viewer")
 
 #: seconds of source time between two drawings of the growing map
 MAP_STEP_S = 1.0
 Event = tuple[float, int, Callable[[Any], None]]
-
-
-def _json_lines(path: Path) -> list[dict[str, Any]]:
-    out = []
-    if path.exists():
-        for line in path.read_text(errors="replace").splitlines():
-            try:
-                row = json.loads(line)
-            except ValueError:
-                continue
-            if isinstance(row, dict) and row.get("t_s") is not None:
-                out.append(row)
-    return out
 
 
 def _map_steps(mp: dict[str, Any], t0: float, t1: float) -> list[Event]:
@@ -62,8 +48,6 @@ def _map_steps(mp: dict[str, Any], t0: float, t1: float) -> list[Event]:
 def run_events(run_dir: str | Path) -> list[Event]:
     """Every event of the run folder, sorted by (source time, kind): a frame's template before
     its pose, the map after them."""
-    from ..runtime.camera_log import CAMERA_FILE, read_camera_zip
-
     run_dir = Path(run_dir)
     templates = _read_csv(run_dir / "templates.csv")
     frame_of = {f"{float(r['stamp']):.6f}": int(r["frame"]) for r in templates}
@@ -77,17 +61,13 @@ def run_events(run_dir: str | Path) -> list[Event]:
     for name, call in (("groundtruth.tum", "groundtruth"), ("odometry.tum", "odometry_pose")):
         for s, x, y, th in _read_tum(run_dir / name):
             events.append((s, 0, lambda v, s=s, p=np.array([x, y, th]), c=call: getattr(v, c)(frame_of.get(f"{s:.6f}"), s, p)))
-    if (run_dir / CAMERA_FILE).exists():
-        try:
-            for f, s, jpeg in read_camera_zip(run_dir / CAMERA_FILE):
-                events.append((s, 0, lambda v, f=f, s=s, j=jpeg: v.jpeg(f, s, j)))
-        except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:  # damaged: the rest is shown
-            log.warning("%s not shown: %s", run_dir / CAMERA_FILE, exc)
+    for f, s, jpeg in read_camera(run_dir):
+        events.append((s, 0, lambda v, f=f, s=s, j=jpeg: v.jpeg(f, s, j)))
     stamps = [e[0] for e in events]
     t0, t1 = (min(stamps), max(stamps)) if stamps else (0.0, 0.0)
     timeline = _read_csv(run_dir / "timeline.csv")
     rows = {(r.get("stage"), r.get("t_s")): r for r in timeline}
-    logs = _json_lines(run_dir / "log.jsonl")
+    logs = read_log_lines(run_dir / "log.jsonl")
     wall = max([float(r["t_s"]) for r in logs] + [float(r["t_s"]) for r in timeline if r.get("t_s")] + [1e-9])
 
     def at(t_s: float) -> float:  # the run's wall-clock seconds on the source's clock

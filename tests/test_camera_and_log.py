@@ -130,3 +130,29 @@ def test_log_jsonl_is_bounded(tmp_path, monkeypatch):
     lf.close()
     rows = [json.loads(x) for x in (tmp_path / runlog.LOG_FILE).read_text().splitlines()]
     assert len(rows) == 4 and rows[-1] == {"t_s": None, "skipped": 2}
+
+
+def test_log_jsonl_is_readable_line_by_line_and_a_restarted_monitor_appends(tmp_path):
+    from neoslam_stream.runtime import runlog
+    from neoslam_stream.runtime.messages import LOG, Message, encode
+
+    class Sample:
+        def __init__(self, message):
+            payload = encode(Message(str(LOG), 0, 5.0, {"level": "INFO", "process": "p", "name": "n",
+                                                        "message": message}))
+            self.payload = type("P", (), {"to_bytes": lambda _self: payload})()
+
+    def messages():
+        return [json.loads(x)["message"] for x in (tmp_path / runlog.LOG_FILE).read_text().splitlines()]
+
+    first = runlog.LogFile(tmp_path, t0=0.0)
+    first.on_sample(Sample("one"))
+    assert messages() == ["one"]  # a viewer sees the line while the run goes on
+    first.on_sample(Sample("two"))
+    assert messages() == ["one", "two"]
+    first.close()
+    first.on_sample(Sample("after close"))  # a callback late after the monitor closed: dropped
+    again = runlog.LogFile(tmp_path, t0=0.0)  # the monitor's second life
+    again.on_sample(Sample("three"))
+    again.close()
+    assert messages() == ["one", "two", "three"]

@@ -99,7 +99,9 @@ def log_record(payload: bytes) -> dict[str, Any] | None:
 
 class LogFile:
     """log.jsonl: one JSON object per log line of the run (:func:`log_record` and ``t_s``, seconds
-    since ``t0``), at most :data:`MAX_LINES`; called from zenoh's callbacks."""
+    since ``t0``), at most :data:`MAX_LINES`; called from zenoh's callbacks. The file is opened
+    once, for appending (a restarted monitor keeps what its first life wrote), and flushed after
+    every line so that a viewer reading the run sees it at once."""
 
     def __init__(self, run_dir: str | Path, t0: float) -> None:
         self.path = Path(run_dir) / LOG_FILE
@@ -107,27 +109,42 @@ class LogFile:
         self.lines = 0
         self.skipped = 0
         self.lock = threading.Lock()
+        self._fh: Any = None
+        self._closed = False
+
+    def _write(self, rec: dict) -> bool:
+        """Append one line; False where the disk refused it (the run goes on, the line is lost)."""
+        try:
+            if self._fh is None:
+                self._fh = open(self.path, "a")
+            self._fh.write(json.dumps(rec) + "\n")
+            self._fh.flush()
+            return True
+        except OSError:
+            return False
 
     def on_sample(self, sample: Any) -> None:
         rec = log_record(sample.payload.to_bytes())
         if rec is None:
             return
         with self.lock:
-            if self.lines >= MAX_LINES:
+            if self._closed:
+                return
+            if self.lines >= MAX_LINES or not self._write({"t_s": round(rec["t"] - self.t0, 3), **rec}):
                 self.skipped += 1
                 return
-            try:
-                with open(self.path, "a") as fh:
-                    fh.write(json.dumps({"t_s": round(rec["t"] - self.t0, 3), **rec}) + "\n")
-                self.lines += 1
-            except OSError:  # a full disk: the run goes on, the line is lost
-                self.skipped += 1
+            self.lines += 1
 
     def close(self) -> None:
         with self.lock:
+            if self._closed:
+                return
+            self._closed = True
             if self.skipped:
+                self._write({"t_s": None, "skipped": self.skipped})
+            if self._fh is not None:
                 try:
-                    with open(self.path, "a") as fh:
-                        fh.write(json.dumps({"t_s": None, "skipped": self.skipped}) + "\n")
+                    self._fh.close()
                 except OSError:
                     pass
+                self._fh = None

@@ -46,19 +46,16 @@ def log_run_folder(run_dir: str | Path, view: RunView) -> None:
     in any case."""
     run_dir = Path(run_dir)
     templates = _read_csv(run_dir / "templates.csv")
-    frame_of: dict[str, int] = {}
-    for row in templates:
-        frame_of[f"{float(row['stamp']):.6f}"] = int(row["frame"])
-    traj = _read_tum(run_dir / "trajectory.tum")
-    for stamp, x, y, th in traj:
-        view.pose(frame_of.get(f"{stamp:.6f}", -1) if frame_of else -1, stamp, np.array([x, y, th]))
+    frame_of = FrameOfStamp(templates)
+    for stamp, x, y, th in _read_tum(run_dir / "trajectory.tum"):
+        view.pose(frame_of(stamp, -1), stamp, np.array([x, y, th]))
     for row in templates:
         view.template(int(row["frame"]), float(row["stamp"]), int(row["template_id"]),
                       row.get("is_loop_closure", "0") not in ("0", "", "false", "False"))
     for stamp, x, y, th in _read_tum(run_dir / "groundtruth.tum"):
-        view.groundtruth(frame_of.get(f"{stamp:.6f}"), stamp, np.array([x, y, th]))
+        view.groundtruth(frame_of(stamp), stamp, np.array([x, y, th]))
     for stamp, x, y, th in _read_tum(run_dir / "odometry.tum"):
-        view.odometry_pose(frame_of.get(f"{stamp:.6f}"), stamp, np.array([x, y, th]))
+        view.odometry_pose(frame_of(stamp), stamp, np.array([x, y, th]))
     log_timeline(run_dir / "timeline.csv", view)
     log_camera_and_log_lines(run_dir, view)
     map_path = run_dir / "map.json"
@@ -67,6 +64,18 @@ def log_run_folder(run_dir: str | Path, view: RunView) -> None:
             view.experience_map(json.loads(map_path.read_text()))
         except (ValueError, KeyError, TypeError) as exc:
             log.warning("map.json not shown: %s", exc)
+
+
+class FrameOfStamp:
+    """The frame number of a stamp, through templates.csv's (frame, stamp) rows: the recorder
+    writes the same stamp to templates.csv and the TUM files (to the microsecond, as TUM's
+    six decimals hold it), so a pose finds its frame by its stamp."""
+
+    def __init__(self, templates: list[dict[str, str]]) -> None:
+        self._frame = {round(float(r["stamp"]), 6): int(r["frame"]) for r in templates}
+
+    def __call__(self, stamp: float, missing: int | None = None) -> int | None:
+        return self._frame.get(round(float(stamp), 6), missing)
 
 
 def read_camera(run_dir: Path) -> list[tuple[int, float, bytes]]:
@@ -109,9 +118,9 @@ def log_camera_and_log_lines(run_dir: Path, view: RunView) -> None:
             continue
 
 
-def timeline_rates(path: Path) -> list[tuple[float, str, float]]:
-    """(t_s, stage, rate_hz) from timeline.csv: each stage's processed count difference over the
-    time between two of its rows."""
+def timeline_rates(path: Path) -> list[tuple[float, str, float, dict[str, str]]]:
+    """(t_s, stage, rate_hz, row) from timeline.csv: each stage's processed count difference over
+    the time between two of its rows, with the later row (its other figures)."""
     last: dict[str, tuple[float, int]] = {}
     out = []
     for row in _read_csv(path):
@@ -121,11 +130,11 @@ def timeline_rates(path: Path) -> list[tuple[float, str, float]]:
             continue
         if stage in last and t > last[stage][0]:
             t0, n0 = last[stage]
-            out.append((t, stage, (done - n0) / (t - t0)))
+            out.append((t, stage, (done - n0) / (t - t0), row))
         last[stage] = (t, done)
     return out
 
 
 def log_timeline(path: Path, view: RunView) -> None:
-    for t, stage, rate in timeline_rates(path):
+    for t, stage, rate, _row in timeline_rates(path):
         view.stage_rate(t, stage, rate)

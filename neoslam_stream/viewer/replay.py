@@ -11,6 +11,7 @@ time in proportion (a lossless run is faster than its source).
 
 from __future__ import annotations
 
+import bisect
 import json
 import logging
 import time
@@ -20,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from .files import _read_csv, _read_tum, read_camera, read_log_lines, timeline_rates
+from .files import FrameOfStamp, _read_csv, _read_tum, read_camera, read_log_lines, timeline_rates
 
 log = logging.getLogger("neoslam.viewer")
 
@@ -30,17 +31,20 @@ Event = tuple[float, int, Callable[[Any], None]]
 
 
 def _map_steps(mp: dict[str, Any], t0: float, t1: float) -> list[Event]:
-    """The final map growing: at every MAP_STEP_S, its experiences created by then and their links."""
-    nodes = [n for n in mp.get("nodes", []) if isinstance(n, dict)]
+    """The final map growing: at every MAP_STEP_S, its experiences created by then and their links
+    (each drawing made when it is played, not before: a long run's snapshots are not all held)."""
+    nodes = sorted((n for n in mp.get("nodes", []) if isinstance(n, dict)), key=lambda n: float(n.get("stamp", 0.0)))
+    stamps = [float(n.get("stamp", 0.0)) for n in nodes]
     links = [lk for lk in mp.get("links", []) if isinstance(lk, dict)]
-    events: list[Event] = []
-    t = t0
-    while t < t1 + MAP_STEP_S:
-        seen = [n for n in nodes if float(n.get("stamp", 0.0)) <= t]
+
+    def grown(t: float) -> dict[str, Any]:
+        seen = nodes[:bisect.bisect_right(stamps, t)]
         ids = {n.get("id") for n in seen}
-        part = {"nodes": seen, "links": [lk for lk in links if lk.get("from") in ids and lk.get("to") in ids]}
-        events.append((t, 3, lambda v, p=part: v.experience_map(p)))
-        t += MAP_STEP_S
+        return {"nodes": seen, "links": [lk for lk in links if lk.get("from") in ids and lk.get("to") in ids]}
+
+    n_steps = int(np.floor((t1 - t0) / MAP_STEP_S)) + 1 if t1 >= t0 else 0
+    events: list[Event] = [(t0 + k * MAP_STEP_S, 3, lambda v, t=t0 + k * MAP_STEP_S: v.experience_map(grown(t)))
+                           for k in range(n_steps)]
     events.append((t1, 4, lambda v: v.experience_map(mp)))
     return events
 
@@ -50,31 +54,29 @@ def run_events(run_dir: str | Path) -> list[Event]:
     its pose, the map after them."""
     run_dir = Path(run_dir)
     templates = _read_csv(run_dir / "templates.csv")
-    frame_of = {f"{float(r['stamp']):.6f}": int(r["frame"]) for r in templates}
+    frame_of = FrameOfStamp(templates)
     events: list[Event] = []
     for r in templates:
         f, s, tid, loop = int(r["frame"]), float(r["stamp"]), int(r["template_id"]), r["is_loop_closure"] == "1"
         events.append((s, 1, lambda v, f=f, s=s, tid=tid, loop=loop: v.template(f, s, tid, loop)))
     for s, x, y, th in _read_tum(run_dir / "trajectory.tum"):
-        f = frame_of.get(f"{s:.6f}", -1)
+        f = frame_of(s, -1)
         events.append((s, 2, lambda v, f=f, s=s, p=np.array([x, y, th]): v.pose(f, s, p)))
     for name, call in (("groundtruth.tum", "groundtruth"), ("odometry.tum", "odometry_pose")):
         for s, x, y, th in _read_tum(run_dir / name):
-            events.append((s, 0, lambda v, s=s, p=np.array([x, y, th]), c=call: getattr(v, c)(frame_of.get(f"{s:.6f}"), s, p)))
+            events.append((s, 0, lambda v, s=s, p=np.array([x, y, th]), c=call: getattr(v, c)(frame_of(s), s, p)))
     for f, s, jpeg in read_camera(run_dir):
         events.append((s, 0, lambda v, f=f, s=s, j=jpeg: v.jpeg(f, s, j)))
     stamps = [e[0] for e in events]
     t0, t1 = (min(stamps), max(stamps)) if stamps else (0.0, 0.0)
-    timeline = _read_csv(run_dir / "timeline.csv")
-    rows = {(r.get("stage"), r.get("t_s")): r for r in timeline}
+    rates = timeline_rates(run_dir / "timeline.csv")
     logs = read_log_lines(run_dir / "log.jsonl")
-    wall = max([float(r["t_s"]) for r in logs] + [float(r["t_s"]) for r in timeline if r.get("t_s")] + [1e-9])
+    wall = max([float(r["t_s"]) for r in logs] + [t_s for t_s, _stage, _rate, _row in rates] + [1e-9])
 
     def at(t_s: float) -> float:  # the run's wall-clock seconds on the source's clock
         return t0 + (t1 - t0) * min(1.0, max(0.0, t_s / wall))
 
-    for t_s, stage, rate in timeline_rates(run_dir / "timeline.csv"):
-        row = rows.get((stage, f"{t_s:.2f}"), {})
+    for t_s, stage, rate, row in rates:
         if stage == "source":  # its row counts the frames it published
             events.append((at(t_s), 5, lambda v, n=row.get("processed"): v.source_stats({"frames_in": int(n or 0)})))
             continue

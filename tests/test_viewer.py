@@ -192,3 +192,28 @@ def test_run_with_view_records_the_live_run(tmp_path):
     for stage in report["stages"]:
         assert f"/stats/{stage}/rate_hz" in rec, stage
     assert "/map/experiences" in rec  # the final map, once the run ended
+
+
+def test_the_live_views_draw_odometry_as_the_sources_write_odometry_tum():
+    """LiveLogger dead-reckons the odom messages once for every view, by the rule of
+    tum.integrate_odometry (the odometry.tum a run folder holds)."""
+    from neoslam_stream.runtime.messages import Message, encode
+    from neoslam_stream.tum import integrate_odometry
+    from neoslam_stream.viewer.live import LiveLogger
+
+    class View:
+        def __init__(self):
+            self.stats = type("S", (), {"bad_messages": 0})()
+            self.poses = []
+
+        def odometry_pose(self, frame, stamp, pose):
+            self.poses.append((stamp, *pose))
+
+    rng = np.random.default_rng(3)
+    odom = np.column_stack([rng.uniform(0, 1, 40), rng.uniform(-1, 1, 40), np.full(40, 0.1)])
+    view = View()
+    logger = LiveLogger(view)
+    for i, (v, w, dt) in enumerate(odom):
+        logger.message("odom", encode(Message("odom", i, i * 0.1, {"vtrans": v, "vrot": w, "dt": dt})))
+    assert view.stats.bad_messages == 0
+    np.testing.assert_allclose(np.array(view.poses), integrate_odometry(np.arange(40) * 0.1, odom), atol=1e-9)

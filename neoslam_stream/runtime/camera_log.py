@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .imageinfo import too_large, truncation
+from .pixels import decode_bounded, fit
 
 log = logging.getLogger("neoslam.source")
 
@@ -25,8 +25,10 @@ log = logging.getLogger("neoslam.source")
 CAMERA_FILE = "camera.zip"
 
 
-def _bgr(image: np.ndarray | None, encoding: str, compressed: bytes | None) -> np.ndarray | None:
-    """The frame as BGR pixels for OpenCV, or None when it cannot be read cheaply and safely."""
+def _bgr(image: np.ndarray | None, encoding: str, compressed: bytes | None,
+         max_side: int) -> np.ndarray | None:
+    """The frame as BGR pixels for OpenCV, or None when it cannot be read cheaply and safely
+    (compressed bytes are decoded as the sources decode them, already bounded to ``max_side``)."""
     import cv2
 
     if image is not None:
@@ -39,12 +41,7 @@ def _bgr(image: np.ndarray | None, encoding: str, compressed: bytes | None) -> n
         if img.shape[2] == 4:
             img = img[:, :, :3]
         return img if enc.startswith("bgr") else img[:, :, ::-1]
-    if not compressed or truncation(compressed) is not None or too_large(compressed) is not None:
-        return None
-    try:
-        return cv2.imdecode(np.frombuffer(compressed, dtype=np.uint8), cv2.IMREAD_COLOR)
-    except cv2.error:
-        return None
+    return decode_bounded(compressed, max_side) if compressed else None
 
 
 def encode_jpeg(bgr: np.ndarray, max_side: int, quality: int) -> bytes | None:
@@ -52,11 +49,7 @@ def encode_jpeg(bgr: np.ndarray, max_side: int, quality: int) -> bytes | None:
     None when OpenCV cannot encode them."""
     import cv2
 
-    bgr = np.ascontiguousarray(bgr)
-    h, w = bgr.shape[:2]
-    scale = max_side / max(h, w)
-    if scale < 1.0:
-        bgr = cv2.resize(bgr, (max(1, round(w * scale)), max(1, round(h * scale))), interpolation=cv2.INTER_AREA)
+    bgr = np.ascontiguousarray(fit(np.ascontiguousarray(bgr), max_side))
     ok, jpeg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, quality])
     return jpeg.tobytes() if ok else None
 
@@ -78,7 +71,7 @@ class CameraLog:
             compressed: bytes | None = None) -> None:
         if self.period_s <= 0 or (self.last_stamp is not None and stamp - self.last_stamp < self.period_s):
             return
-        bgr = _bgr(image, encoding, compressed)
+        bgr = _bgr(image, encoding, compressed, self.max_side)
         if bgr is None:
             self.unreadable += 1
             return

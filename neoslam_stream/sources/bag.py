@@ -24,8 +24,9 @@ from typing import Any
 
 import numpy as np
 
+from ..runtime.pixels import decode_bounded, fit, needs_resize
 from .base import Source, SourceFrame
-from .imaging import DEFAULT_MAX_SIDE, ImageEncodingError, decode_bounded, fit, needs_resize, ros_image
+from .imaging import DEFAULT_MAX_SIDE, ImageEncodingError, ros_image
 from .params import ExistingPath, PositiveFloat, PositiveInt
 
 EARTH_RADIUS = 6378137.0

@@ -14,9 +14,10 @@ import logging
 from collections.abc import Iterator
 from typing import Any
 
+from ..runtime.pixels import fit
 from .base import Source, SourceFrame
 from .capture import CameraError, LiveCapture, camera_target, frame_encoding, loss_causes
-from .imaging import DEFAULT_MAX_SIDE, fit
+from .imaging import DEFAULT_MAX_SIDE
 from .odometry import OdometrySubscription, frame_odometry
 
 log = logging.getLogger("neoslam.sources.camera")

@@ -24,8 +24,9 @@ import zenoh
 
 from ..runtime.bus import open_session
 from ..runtime.messages import Message, MessageError, encode
+from ..runtime.pixels import fit
 from .capture import LiveCapture, frame_encoding
-from .imaging import DEFAULT_MAX_SIDE, fit
+from .imaging import DEFAULT_MAX_SIDE
 
 log = logging.getLogger("neoslam.sources.camera")
 

@@ -15,10 +15,11 @@ import cv2
 import numpy as np
 
 from ..runtime.messages import MAX_MESSAGE_BYTES
+from ..runtime.pixels import decode_bounded, fit
 from ..tum import read_tum_rows
 from .bag import interpolate_pose
 from .base import Source, SourceFrame
-from .imaging import DEFAULT_MAX_SIDE, decode_bounded, fit
+from .imaging import DEFAULT_MAX_SIDE
 from .params import ExistingDir, ExistingPath, PositiveFloat, PositiveInt
 
 log = logging.getLogger("neoslam.sources.files")

@@ -1,4 +1,4 @@
-"""Pixels at the sources: ROS image encodings to 8-bit frames, and images bounded in size.
+"""Pixels at the sources: ROS image encodings to 8-bit frames.
 
 :func:`ros_image`: 8-bit encodings pass through (a zero-copy view of the rows, padding dropped);
 16-bit encodings (``is_bigendian`` honoured) become 8-bit by mapping the frame's own range
@@ -6,21 +6,16 @@
 cameras rarely fill 16 bits (10-14-bit sensors, thermal, depth in millimetres), and the high byte
 alone would leave such frames almost black.
 
-:func:`fit`, :func:`decode_bounded`: a valid but large image is resized at the source so that its
-long side is at most ``max_side`` pixels (INTER_AREA); a JPEG is decoded at a reduced DCT scale so
-the whole frame is never held in memory. Headers claiming more than
-:data:`~neoslam_stream.runtime.imageinfo.MAX_PIXELS` are not decoded here: the front end refuses
-them with their cause. Details: docs/sources.md, "Large images and 16-bit frames".
+Images bounded in size (``max_side``, :data:`DEFAULT_MAX_SIDE`) are decoded and resized by
+:mod:`neoslam_stream.runtime.pixels`, which the run's camera.zip shares. Details: docs/sources.md,
+"Large images and 16-bit frames".
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-import cv2
 import numpy as np
-
-from ..runtime.imageinfo import image_dimensions, too_large, truncation
 
 #: default bound on a frame's long side, in pixels (sources' ``max_side`` parameter)
 DEFAULT_MAX_SIDE = 1920
@@ -35,9 +30,6 @@ ROS_ENCODINGS: dict[str, tuple[int, int, str]] = {
     "rgba16": (4, 2, "rgb8"), "bgra16": (4, 2, "bgr8"),
 }
 SUPPORTED = "rgb8, bgr8, mono8/8UC1, rgba8, bgra8, 8UC3, mono16/16UC1, rgb16, bgr16, rgba16, bgra16"
-
-_REDUCED = ((8, cv2.IMREAD_REDUCED_COLOR_8), (4, cv2.IMREAD_REDUCED_COLOR_4), (2, cv2.IMREAD_REDUCED_COLOR_2))
-
 
 class ImageEncodingError(ValueError):
     """A ROS image that cannot be turned into a frame; the text says why."""
@@ -76,43 +68,3 @@ def ros_image(data: Any, height: int, width: int, step: int, encoding: str,
     v = v[:, :, :3] if channels == 4 else v  # alpha carries no view
     out = stretch_to_8bit(v)
     return (out[:, :, 0] if channels == 1 else np.ascontiguousarray(out)), out_enc
-
-
-def fit(img: np.ndarray, max_side: int | None) -> np.ndarray:
-    """``img`` resized (INTER_AREA, aspect kept) so that its long side is at most ``max_side``."""
-    h, w = img.shape[:2]
-    if not max_side or max(h, w) <= max_side:
-        return img
-    s = max_side / max(h, w)
-    size = (max(1, round(w * s)), max(1, round(h * s)))
-    return cv2.resize(img, size, interpolation=cv2.INTER_AREA)
-
-
-def decode_bounded(raw: bytes, max_side: int | None) -> np.ndarray | None:
-    """The BGR frame of JPEG/PNG/... bytes with its long side at most ``max_side``, or None when
-    the bytes are empty, truncated, claim more than the decode limit, or do not decode (the
-    front end then refuses them with the cause)."""
-    if not raw or too_large(raw) is not None or truncation(raw) is not None:
-        return None
-    flag = cv2.IMREAD_COLOR
-    dims = image_dimensions(raw)
-    if max_side and dims is not None and raw[:2] == b"\xff\xd8":
-        # the largest DCT reduction that keeps the long side at or above the bound
-        for r, f in _REDUCED:
-            if max(dims) // r >= max_side:
-                flag = f
-                break
-    try:
-        img = cv2.imdecode(np.frombuffer(raw, np.uint8), flag)
-    except cv2.error:
-        return None
-    return None if img is None else fit(img, max_side)
-
-
-def needs_resize(raw: bytes, max_side: int | None) -> bool:
-    """Whether compressed bytes declare a frame whose long side is beyond ``max_side`` (and
-    within the decode limit): such a frame is decoded and resized at the source."""
-    if not max_side or too_large(raw) is not None:
-        return False
-    dims = image_dimensions(raw)
-    return dims is not None and max(dims) > max_side

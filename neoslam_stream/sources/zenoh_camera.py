@@ -30,10 +30,11 @@ from pydantic import BeforeValidator
 from ..runtime.bus import open_session
 from ..runtime.messages import MessageError
 from ..runtime.messages import decode as decode_message
+from ..runtime.pixels import decode_bounded, fit, needs_resize
 from .base import Source, SourceFrame
 from .capture import loss_causes
 from .cdr import CdrError, decode
-from .imaging import DEFAULT_MAX_SIDE, decode_bounded, fit, needs_resize
+from .imaging import DEFAULT_MAX_SIDE
 from .odometry import OdometrySubscription, frame_odometry
 from .params import PositiveFloat, PositiveInt
 

@@ -182,7 +182,6 @@ class FoxgloveView:
         #: a frame's pose (x, y, experience) for its loop closure, which may come before or after it
         self.frame_pose: dict[int, tuple[float, float, int]] = {}
         self.closures_waiting: dict[int, dict[str, Any]] = {}
-        self.odo = (0.0, 0.0, 0.0)
         self.progress = {"frames_in": 0, "frames_out": 0, "behind": 0, "loss": None, "status": "running"}
         self.server = foxglove.start_server(name=name, host=host, port=port, capabilities=[],
                                             server_listener=self.listener, context=self.ctx,
@@ -297,13 +296,6 @@ class FoxgloveView:
     def odometry_pose(self, frame: int | None, stamp: float | None, pose: np.ndarray) -> None:
         self._path("/neoslam/odometry", stamp, pose)
         self.stats.odometry += 1
-
-    def odometry_step(self, frame: int, stamp: float | None, vtrans: float, vrot: float, dt: float) -> None:
-        """One odometry sample integrated as the source does for odometry.tum (heading first)."""
-        x, y, th = self.odo
-        th += vrot * dt
-        self.odo = (x + vtrans * dt * math.cos(th), y + vtrans * dt * math.sin(th), th)
-        self.odometry_pose(frame, stamp, np.array(self.odo))
 
     def _path(self, topic: str, stamp: float | None, pose: np.ndarray) -> None:
         p = np.asarray(pose, dtype=np.float64)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import threading
 import time
 from collections import deque
@@ -110,6 +111,15 @@ class LiveLogger:
         self.t0 = time.monotonic()
         self.last_stats: dict[str, tuple[float, int]] = {}
         self._bad_logged = False
+        self._odo = (0.0, 0.0, 0.0)  # the odometry's dead-reckoned x, y, theta
+
+    def odometry_step(self, vtrans: float, vrot: float, dt: float) -> np.ndarray:
+        """One odometry sample dead-reckoned by the rule of the sources' odometry.tum
+        (:func:`neoslam_stream.tum.integrate_odometry`: turn by vrot*dt, then advance vtrans*dt)."""
+        x, y, th = self._odo
+        th += vrot * dt
+        self._odo = (x + vtrans * dt * math.cos(th), y + vtrans * dt * math.sin(th), th)
+        return np.array(self._odo)
 
     def _bad(self, what: str, exc: Exception) -> None:
         self.view.stats.bad_messages += 1
@@ -147,8 +157,8 @@ class LiveLogger:
             elif topic == "groundtruth":
                 self.view.groundtruth(msg.frame, msg.stamp, np.asarray(d["pose"], dtype=np.float64))
             elif topic == "odom":
-                self.view.odometry_step(msg.frame, msg.stamp, float(d["vtrans"]), float(d["vrot"]),
-                                        float(d.get("dt") or 0.0))
+                self.view.odometry_pose(msg.frame, msg.stamp, self.odometry_step(
+                    float(d["vtrans"]), float(d["vrot"]), float(d.get("dt") or 0.0)))
             elif topic == "experience_map/map":  # the final map's export, or a viewer's arrays
                 self.view.experience_map(d.get("export") or {"nodes": np.asarray(d["nodes"]).tolist(),
                                                              "links": np.asarray(d.get("links", [])).tolist()},

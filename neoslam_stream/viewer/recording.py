@@ -78,7 +78,6 @@ class RunView:
             raise ValueError("a view needs a file to save to or a window")
         self.rec.set_sinks(*sinks, default_blueprint=blueprint)
         self.stats = ViewStats()
-        self._odo = [0.0, 0.0, 0.0]  # dead-reckoned x, y, theta
         #: x, y of each frame's pose, and closing frames whose pose has not arrived yet: a frame's
         #: template and its pose come on different topics, in either order
         self._xy: dict[int, tuple[float, float]] = {}
@@ -162,15 +161,6 @@ class RunView:
         self.rec.log("map/odometry", self.rr.Points2D([np.asarray(pose, dtype=np.float64)[:2]],
                                                       colors=[(150, 150, 150)], radii=0.02))
         self.stats.odometry += 1
-
-    def odometry_step(self, frame: int, stamp: float | None, vtrans: float, vrot: float, dt: float) -> None:
-        """Integrate one odometry sample as the source does for odometry.tum (heading first)."""
-        x, y, th = self._odo
-        th += vrot * dt
-        x += vtrans * dt * math.cos(th)
-        y += vtrans * dt * math.sin(th)
-        self._odo = [x, y, th]
-        self.odometry_pose(frame, stamp, np.array([x, y, th]))
 
     def stage_stats(self, t_s: float, stage: str, rate_hz: float, st: dict[str, Any]) -> None:
         """A stage's figures: its rate is shown."""

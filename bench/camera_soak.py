@@ -15,7 +15,7 @@ It writes:
 * ``memory``: the RSS of every process of the run (supervisor, monitor, source, each worker; read
   by psutil as the workers report it in stats.jsonl, which bench/soak.py reads) every ``--every``
   seconds; ``memory_flat_range_mb``: max - min of their total after the first ``--flat-after``
-  seconds (600), and ``memory_flat_within_50mb``;
+  seconds (600), and ``memory_flat_within_50mb`` (bench/memory_flat.py: the verdict of both soaks);
 * ``latency``: per frame, from its capture stamp (time.time() of the camera's thread when it read
   the frame; templates.csv's ``stamp``) to the end of D's service (the trace's D span, put back
   on the epoch by its origin): p50 / p95, every stage on the way, and minute by minute. Both are
@@ -52,13 +52,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from memory_flat import FLAT_AFTER_S, memory_flat  # noqa: E402
+
 #: the frames' JPEG quality (an IP camera's usual range)
 JPEG_QUALITY = 90
 #: the stages a frame passes up to its template, in order (the trace's names)
 TO_TEMPLATE = ("source", "A", "B", "C", "D")
-#: the verdict's bound on the total memory's range after the first minutes
-FLAT_LIMIT_MB = 50.0
-
 
 # ----------------------------------------------------------------------------- the stream
 def route_jpegs(cache_dir: Path, quality: int = JPEG_QUALITY) -> tuple[list[bytes], dict[str, Any]]:
@@ -181,20 +180,6 @@ def memory_rows(samples: list[dict[str, Any]], t0: float, workers: list[str]) ->
         rows.append({"t_s": round(s["time"] - t0, 1), "served": s["served"], "rss_mb": rss,
                      "rss_total_mb": round(sum(rss.values()), 1)})
     return rows
-
-
-def memory_flatness(rows: list[dict[str, Any]], after_s: float, until_s: float | None = None,
-                    limit_mb: float = FLAT_LIMIT_MB) -> dict[str, Any]:
-    """Max - min of the total RSS over the rows with ``after_s <= t_s <= until_s`` (MB; ``until_s``:
-    the end of the stream, after which the processes flush, save and exit), whether it is within
-    ``limit_mb``, and the totals it is taken from (first, last, min, max); None without such rows."""
-    totals = [r["rss_total_mb"] for r in rows if r["t_s"] >= after_s and (until_s is None or r["t_s"] <= until_s)]
-    out: dict[str, Any] = {"after_s": after_s, "until_s": until_s, "samples": len(totals), "limit_mb": limit_mb}
-    if not totals:
-        return {**out, "range_mb": None, "within_limit": None}
-    span = max(totals) - min(totals)
-    return {**out, "range_mb": round(span, 1), "within_limit": span <= limit_mb, "first_mb": totals[0],
-            "last_mb": totals[-1], "min_mb": min(totals), "max_mb": max(totals)}
 
 
 # ----------------------------------------------------------------------------- latency
@@ -386,7 +371,7 @@ def analyse(run_dir: Path, trace: Path, server: Any, samples: list[dict[str, Any
     served = served_until(server.sent_times, max(stamps.values()) + 2.0 / args.rate if stamps else None)
     finished = trace_finish_times(trace) if trace.exists() else {}
     latency = latency_figures(stamps, finished, t0, bin_s=60.0 if args.duration >= 600 else 10.0)
-    flat = memory_flatness(rows, args.flat_after, until_s=args.duration)
+    flat = memory_flat(rows, args.flat_after, until_s=args.duration)
     vo = (report.get("stages") or {}).get("visual_odometry") or {}
     res: dict[str, Any] = {
         "rate": args.rate, "duration_s": args.duration, "config": "default (shipped)", "t0": t0,
@@ -396,7 +381,7 @@ def analyse(run_dir: Path, trace: Path, server: Any, samples: list[dict[str, Any
         **extra,
         **frame_figures(report, served, server.connections, len(stamps)),
         "served_after_stream_end": server.sent - served,
-        "memory_flat_range_mb": flat["range_mb"], "memory_flat_within_50mb": flat["within_limit"],
+        "memory_flat_range_mb": flat["range_mb"], "memory_flat_within_50mb": flat["flat"],
         "latency_capture_to_template_p50_ms": latency["capture_to_template_ms"]["p50"],
         "latency_capture_to_template_p95_ms": latency["capture_to_template_ms"]["p95"],
         "latency": latency,
@@ -414,7 +399,7 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=3600.0, help="seconds of the run (default 3600)")
     ap.add_argument("--rate", type=float, default=30.0, help="frames per second the stream serves (30)")
     ap.add_argument("--every", type=float, default=10.0, help="seconds between two memory samples (10)")
-    ap.add_argument("--flat-after", type=float, default=600.0,
+    ap.add_argument("--flat-after", type=float, default=FLAT_AFTER_S,
                     help="the memory verdict's window starts this many seconds after the first frame (600)")
     ap.add_argument("--kill-server-at", type=float, metavar="S",
                     help="stop the stream S seconds after its first frame, once (default: never)")

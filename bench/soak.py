@@ -7,9 +7,10 @@ hypervisor took from this machine in it (``steal_s``, from /proc/stat beside the
 which the host took the cores loses frames that are not the pipeline's doing). Memory is bounded
 when the RSS curve flattens: the report gives the growth rate over the second half of the run
 (MB per hour) next to the state the stages keep (TM segments/synapses, spatial-view intervals,
-experiences), which must grow with new places only, and ``memory_flat_after_warmup``: the rise of
-the summed RSS after ``--flat-after`` seconds (600: the first ten minutes) against
-``--flat-within`` MB (50), with the frames lost, and whether both hold (``reached``).
+experiences), which must grow with new places only, and ``memory_flat_after_warmup``: the range
+(max - min) of the summed RSS after ``--flat-after`` seconds (600: the first ten minutes) until
+the stream's end against ``--flat-within`` MB (50), as bench/memory_flat.py defines it for both
+soaks, with the frames lost, and whether both hold (``reached``).
 
 Run: ``.venv/bin/python bench/soak.py [--duration 3600] [--rate 30] [--backbone random_alexnet] [--matrix-dtype int8] [--out bench/results/soak.json]``;
 a short check of the same: ``--duration 240 --every 10 --flat-after 60``
@@ -31,6 +32,9 @@ from pathlib import Path
 import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from memory_flat import FLAT_AFTER_S, FLAT_WITHIN_MB, memory_flat  # noqa: E402
 
 from neoslam_stream.runtime.host import steal_ticks  # noqa: E402
 from neoslam_stream.throughput import rate_sweep, summarise  # noqa: E402
@@ -164,27 +168,13 @@ def passes(run_dir: Path) -> list[dict]:
             for k in sorted(rows)]
 
 
-def memory_after_warmup(rows: list[dict], after_s: float, within_mb: float, frames_lost: int) -> dict:
-    """Whether memory stays flat once the run has warmed up: the rise of the workers' summed RSS
-    from the first sample at or after ``after_s`` to the highest one after it (``rise_mb``, and
-    per worker), against ``within_mb``; with the frames lost over the whole run. ``reached``: flat
-    and no frame lost (the one-hour soak's target: within 50 MB after the first ten minutes)."""
-    later = [r for r in rows if r["t_s"] >= after_s]
-    out: dict = {"after_s": after_s, "within_mb": within_mb, "frames_lost": frames_lost,
-                 "no_frame_lost": frames_lost == 0}
-    if not later:
-        return {**out, "reached": None, "why": f"no sample at or after {after_s:g} s"}
-    base = later[0]
-    top = max(r["rss_total_mb"] for r in later)
-    by_worker = {}
-    for name in base["rss_mb"]:
-        vals = [r["rss_mb"].get(name) for r in later if r["rss_mb"].get(name) is not None]
-        if vals and base["rss_mb"].get(name) is not None:
-            by_worker[name] = round(max(vals) - base["rss_mb"][name], 1)
-    rise = round(top - base["rss_total_mb"], 1)
-    return {**out, "rss_total_mb_then": round(base["rss_total_mb"], 1), "rss_total_mb_max_after": round(top, 1),
-            "rss_total_mb_last": round(later[-1]["rss_total_mb"], 1), "rise_mb": rise, "rise_mb_by_worker": by_worker,
-            "flat": rise <= within_mb, "reached": rise <= within_mb and frames_lost == 0}
+def memory_after_warmup(rows: list[dict], after_s: float, within_mb: float, frames_lost: int,
+                        until_s: float | None = None) -> dict:
+    """The live hour's target: memory flat after the warm-up (:func:`memory_flat.memory_flat`, the
+    verdict both soaks use) and no frame lost over the whole run; ``reached`` when both hold."""
+    flat = memory_flat(rows, after_s, within_mb, until_s)
+    reached = None if flat["flat"] is None else bool(flat["flat"] and frames_lost == 0)
+    return {**flat, "frames_lost": frames_lost, "no_frame_lost": frames_lost == 0, "reached": reached}
 
 
 def growth_per_hour(rows: list[dict]) -> float | None:
@@ -245,9 +235,9 @@ def main() -> None:
                     help="storage of B's Gaussian matrix (projector.matrix_dtype; default: the config's)")
     ap.add_argument("--feature-bits", type=int, choices=[16, 7],
                     help="with int8 storage: 16- or 7-bit features (projector.feature_bits; default: the config's)")
-    ap.add_argument("--flat-after", type=float, default=600.0,
+    ap.add_argument("--flat-after", type=float, default=FLAT_AFTER_S,
                     help="seconds after which memory must stay flat (default 600: the first ten minutes)")
-    ap.add_argument("--flat-within", type=float, default=50.0, help="MB the memory may rise after --flat-after")
+    ap.add_argument("--flat-within", type=float, default=FLAT_WITHIN_MB, help="MB the memory may rise after --flat-after")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "soak.json"))
     ap.add_argument("--from-run", help="analyse this finished soak run folder instead of running one")
     ap.add_argument("--steal-log", help="with --from-run: the /proc/stat log taken beside it "
@@ -288,7 +278,8 @@ def main() -> None:
            "rss_total_mb_last": rows[-1]["rss_total_mb"] if rows else None,
            "rss_growth_mb_per_hour_second_half": growth_per_hour(rows),
            "memory_flat_after_warmup": memory_after_warmup(rows, args.flat_after, args.flat_within,
-                                                           int(row["frames_in"] - row["frames_processed"])),
+                                                           int(row["frames_in"] - row["frames_processed"]),
+                                                           until_s=args.duration),
            "stages": row["stages"], "passes": by_pass, "minutes": rows}
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(res, indent=2))

@@ -15,7 +15,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 from camera_soak import (  # noqa: E402
     frame_figures,
     latency_figures,
-    memory_flatness,
     memory_rows,
     read_stamps,
     served_until,
@@ -23,24 +22,39 @@ from camera_soak import (  # noqa: E402
     worker_label,
 )
 
+from memory_flat import memory_flat  # noqa: E402
+
 from neoslam_stream.runtime.trace import TraceWriter  # noqa: E402
 
 
 def test_memory_is_flat_when_the_total_moves_less_than_the_bound_after_the_first_minutes():
-    # the start-up (t < 0) and the first ten minutes are left out: 2200, 2230, 2210, 2245 remain
     # the start-up (t < 0), the first ten minutes and the shut-down after the stream's hour (the
     # processes save their state and exit) are left out: 2200, 2230, 2210, 2245 remain
-    rows = [{"t_s": t, "rss_total_mb": m} for t, m in
+    rows = [{"t_s": t, "rss_total_mb": m, "rss_mb": {"A": m - 1000.0, "D": 1000.0}} for t, m in
             [(-30, 100.0), (0, 2000.0), (300, 2100.0), (600, 2200.0), (610, 2230.0), (1200, 2210.0), (3600, 2245.0),
              (3610, 1900.0)]]
-    flat = memory_flatness(rows, after_s=600, until_s=3600)
-    assert flat["samples"] == 4 and flat["range_mb"] == 45.0 and flat["within_limit"] is True
+    flat = memory_flat(rows, after_s=600, until_s=3600)
+    assert flat["samples"] == 4 and flat["range_mb"] == 45.0 and flat["flat"] is True
     assert (flat["first_mb"], flat["last_mb"], flat["min_mb"], flat["max_mb"]) == (2200.0, 2245.0, 2200.0, 2245.0)
-    assert memory_flatness(rows, after_s=600, until_s=3600, limit_mb=40)["within_limit"] is False
-    assert memory_flatness(rows, after_s=600)["range_mb"] == 345.0  # 2245 - 1900 with the shut-down
+    assert flat["rise_mb"] == 45.0 and flat["rise_mb_by_process"] == {"A": 45.0, "D": 0.0}
+    assert memory_flat(rows, after_s=600, within_mb=40, until_s=3600)["flat"] is False
+    assert memory_flat(rows, after_s=600)["range_mb"] == 345.0  # 2245 - 1900 with the shut-down
+    # memory that falls counts as memory that rises: 2230 then 2180 is a range of 50, a rise of 30
+    dip = [{"t_s": t, "rss_total_mb": m} for t, m in [(600, 2200.0), (700, 2230.0), (800, 2180.0)]]
+    assert memory_flat(dip, within_mb=49)["flat"] is False and memory_flat(dip)["rise_mb"] == 30.0
     # a run shorter than the window has no verdict, not a made-up one
-    assert memory_flatness(rows, after_s=4000) == {"after_s": 4000, "until_s": None, "samples": 0, "limit_mb": 50.0,
-                                                   "range_mb": None, "within_limit": None}
+    assert memory_flat(rows, after_s=4000) == {"after_s": 4000, "until_s": None, "within_mb": 50.0, "samples": 0,
+                                               "range_mb": None, "flat": None}
+
+
+def test_the_live_hours_target_needs_flat_memory_and_no_frame_lost():
+    from soak import memory_after_warmup
+
+    rows = [{"t_s": t, "rss_total_mb": m, "rss_mb": {}} for t, m in [(600, 2000.0), (1200, 2030.0)]]
+    assert memory_after_warmup(rows, 600, 50, frames_lost=0)["reached"] is True
+    assert memory_after_warmup(rows, 600, 50, frames_lost=1)["reached"] is False
+    assert memory_after_warmup(rows, 600, 20, frames_lost=0)["reached"] is False
+    assert memory_after_warmup(rows, 3600, 50, frames_lost=0)["reached"] is None
 
 
 def test_memory_rows_name_every_process_and_sum_them():

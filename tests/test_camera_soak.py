@@ -21,7 +21,6 @@ from camera_soak import (  # noqa: E402
     trace_finish_times,
     worker_label,
 )
-
 from memory_flat import memory_flat  # noqa: E402
 
 from neoslam_stream.runtime.trace import TraceWriter  # noqa: E402

@@ -1,4 +1,5 @@
-"""What the source process reads: the :class:`Source` protocol and the :class:`SourceFrame` it yields.
+"""What the source process reads: the :class:`Source` protocol, the :class:`SourceFrame` it yields
+and the messages a frame becomes (:func:`frame_messages`).
 
 The runtime hosts a source as it hosts a node: built in its own process from a dotted factory path
 (``SourceSpec``), iterated, paced and published by ``runtime.source_runner``. It never knows which
@@ -7,13 +8,15 @@ source it runs; ``launch`` resolves a source kind to its factory (``neoslam_stre
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-__all__ = ["Source", "SourceFrame"]
+from .messages import Message
+
+__all__ = ["Source", "SourceFrame", "frame_messages", "guarded"]
 
 
 @dataclass
@@ -58,3 +61,43 @@ class Source(Protocol):
         ...
 
     def close(self) -> None: ...
+
+
+def frame_messages(sf: SourceFrame, published_at: float) -> list[tuple[str, Message]]:
+    """The messages a frame becomes: ``image`` (with the ``source`` trace entry stamped at
+    ``published_at``), ``odom`` and ``groundtruth``, each where the frame has it."""
+    out: list[tuple[str, Message]] = []
+    if sf.image is not None or sf.compressed is not None:
+        data: dict[str, Any] = {}
+        if sf.image is not None:
+            data["image"] = np.ascontiguousarray(sf.image)
+            data["encoding"] = sf.encoding
+        else:
+            data["compressed"] = bytes(sf.compressed)
+            data["format"] = sf.format or "jpeg"
+        out.append(("image", Message("image", sf.frame, sf.stamp, data,
+                                     [("source", published_at, published_at, published_at)])))
+    if sf.odom is not None:
+        vtrans, vrot, dt = sf.odom
+        out.append(("odom", Message("odom", sf.frame, sf.stamp,
+                                    {"vtrans": float(vtrans), "vrot": float(vrot), "dt": float(dt)})))
+    if sf.groundtruth is not None:
+        out.append(("groundtruth", Message("groundtruth", sf.frame, sf.stamp,
+                                           {"pose": np.asarray(sf.groundtruth, dtype=np.float64)})))
+    return out
+
+
+def guarded(source: Source, record_error: Callable[[str], None]) -> Iterator[SourceFrame]:
+    """Iterate ``source``; an exception while reading (a truncated bag, a corrupt container) is
+    recorded as the source's error and ends the stream, so the frames read so far are processed
+    and the run ends normally."""
+    it = iter(source)
+    while True:
+        try:
+            sf = next(it)
+        except StopIteration:
+            return
+        except Exception as exc:
+            record_error(f"reading stopped: {type(exc).__name__}: {exc}")
+            return
+        yield sf

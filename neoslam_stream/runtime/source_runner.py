@@ -21,20 +21,18 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-
-import numpy as np
 
 from ..tum import write_tum
 from . import runlog
 from .bus import Bus, ControlGate, key_for, open_session, wait_for_peers, wait_for_subscribers
 from .camera_log import CameraLog
-from .messages import Message, MessageError, Topic, decode, encode, register_topics
+from .credit_window import CreditWindow
+from .messages import Message, MessageError, Topic, encode, register_topics
 from .node import load_factory
-from .source import Source, SourceFrame
+from .source import Source, SourceFrame, frame_messages, guarded
 
 log = logging.getLogger("neoslam.source")
 
@@ -98,83 +96,6 @@ class SourceRunSpec:
     camera_log_frames: int = 600
 
 
-class _Progress:
-    """Frames seen on the final topic (credit window and end-of-run drain). ``start_frame``: the
-    first frame this run publishes (a resumed run starts at its checkpoint's cut): the credit
-    window counts from there, not from 0, or the first frame would wait ``stall_timeout`` for
-    frames that will never come."""
-
-    def __init__(self, start_frame: int = 0) -> None:
-        self.last_frame = start_frame - 1
-        self.count = 0
-        self.last_change = time.monotonic()
-        self.cond = threading.Condition()
-        self.refusal_logged = False
-
-    def on_sample(self, sample: Any) -> None:
-        try:
-            msg = decode(sample.payload.to_bytes())
-        except MessageError as exc:  # an unregistered type says so here, once
-            if not self.refusal_logged:
-                self.refusal_logged = True
-                log.warning("a message of the final topic was refused: %s", exc)
-            return
-        except Exception:
-            return
-        with self.cond:
-            self.count += 1
-            if msg.frame > self.last_frame:
-                self.last_frame = msg.frame
-            self.last_change = time.monotonic()
-            self.cond.notify_all()
-
-    def wait_until(self, frame: int, stall_timeout: float, stop: threading.Event) -> bool:
-        with self.cond:
-            while self.last_frame < frame and not stop.is_set():
-                if time.monotonic() - self.last_change > stall_timeout:
-                    return False
-                self.cond.wait(0.1)
-        return True
-
-
-def frame_messages(sf: SourceFrame, published_at: float) -> list[tuple[str, Message]]:
-    out: list[tuple[str, Message]] = []
-    if sf.image is not None or sf.compressed is not None:
-        data: dict[str, Any] = {}
-        if sf.image is not None:
-            data["image"] = np.ascontiguousarray(sf.image)
-            data["encoding"] = sf.encoding
-        else:
-            data["compressed"] = bytes(sf.compressed)
-            data["format"] = sf.format or "jpeg"
-        out.append(("image", Message("image", sf.frame, sf.stamp, data,
-                                     [("source", published_at, published_at, published_at)])))
-    if sf.odom is not None:
-        vtrans, vrot, dt = sf.odom
-        out.append(("odom", Message("odom", sf.frame, sf.stamp,
-                                    {"vtrans": float(vtrans), "vrot": float(vrot), "dt": float(dt)})))
-    if sf.groundtruth is not None:
-        out.append(("groundtruth", Message("groundtruth", sf.frame, sf.stamp,
-                                           {"pose": np.asarray(sf.groundtruth, dtype=np.float64)})))
-    return out
-
-
-def _guarded(source: Source, record_error: Callable[[str], None]) -> Iterator[SourceFrame]:
-    """Iterate ``source``; an exception while reading (a truncated bag, a corrupt container) is
-    recorded as the source's error and ends the stream, so the frames read so far are processed
-    and the run ends normally."""
-    it = iter(source)
-    while True:
-        try:
-            sf = next(it)
-        except StopIteration:
-            return
-        except Exception as exc:
-            record_error(f"reading stopped: {type(exc).__name__}: {exc}")
-            return
-        yield sf
-
-
 class SourceRunner:
     """The body of the source process (module docstring): it links to the run, paces the
     source's frames and publishes them, keeps what its stats report (frames published as ranges
@@ -192,7 +113,7 @@ class SourceRunner:
         self.spec = spec
         self.source = source
         self.stop = stop
-        self.progress = _Progress(spec.start_frame)
+        self.progress = CreditWindow(spec.start_frame)
         self.gate = ControlGate(spec.control_token, "source")
         self.session: Any = None
         self.bus: Bus | None = None
@@ -449,7 +370,7 @@ class SourceRunner:
     def stream(self) -> None:
         """Every frame of the source up to the run's limits, paced and published."""
         spec = self.spec
-        for sf in _guarded(self.source, self.record_error):
+        for sf in guarded(self.source, self.record_error):
             if self.stop.is_set():
                 break
             if spec.max_frames is not None and self.n_read >= spec.max_frames:

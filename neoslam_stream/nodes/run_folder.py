@@ -13,8 +13,10 @@ map.json and trajectory_map.tum are replaced atomically at the end. A closure ro
 frame's ground truth (at most ``GT_WAIT_ROWS`` closures). With a run folder, a row is kept in
 memory only until it is in its file (the files are the record; a day's rows as Python objects would
 hold ~1 kB a frame, 100 MB an hour at 30 FPS): what the end needs of every frame is kept as numbers
-(:class:`NumberRows`), its pose in its experience's frame for trajectory_map.tum and, with an MCAP,
-its template and pose for outputs.mcap. An ``OSError`` (disk full) is logged once
+(``run_numbers.py``), its pose in its experience's frame for trajectory_map.tum and, with an MCAP,
+its template and pose for outputs.mcap, in scratch files of the run folder (removed at close) with
+one block in memory; the first frame of each template and interval, and its true place, in sorted
+arrays (40 bytes an interval). An ``OSError`` (disk full) is logged once
 per file and counted; unwritten rows are retried at most every ``RETRY_S`` seconds and at the end,
 and what was written stays intact.
 """
@@ -33,13 +35,13 @@ import numpy as np
 from ..algorithms.ratslam.experience_map import export_node_poses, poses_on_map
 from ..algorithms.records import MapPose, Template
 from ..runtime.files import AppendFile, complete_lines, describe_write_error, write_atomic
+from .run_numbers import KeyedNumbers, NumberRows
 from .run_rows import (
     CLOSURES,
     ROW_FILES,
     TEMPLATES,
     TRAJECTORY,
     ClosureRow,
-    NumberRows,
     PoseRow,
     RowFile,
     TemplateRow,
@@ -97,14 +99,15 @@ class RunFolder:
         #: closure rows waiting for the ground truth of their frame
         self.closures_waiting: list[WaitingClosure] = []
         #: the frame that created each template / opened each of D's intervals
-        self.template_first: dict[int, int] = {}
-        self.interval_first: dict[int, int] = {}
-        #: true (x, y) of those first frames, and of frames whose template has not come yet
-        self.places: dict[int, tuple[float, float]] = {}
+        self.template_first, self.interval_first = KeyedNumbers(1), KeyedNumbers(1)
+        #: true (x, y) of those first frames
+        self.places = KeyedNumbers(2)
+        #: true (x, y) of frames whose template has not come yet
         self.gt: dict[int, tuple[float, float]] = {}
         self.gt_last_frame = -1
         self.last_template_frame = -1
-        self._first_frames: set[int] = set()
+        #: first frames whose true place has not come yet
+        self._awaiting_place: set[int] = set()
         self._files: dict[RowFile, AppendFile] | None = None
         self._journal: AppendFile | None = None
         #: rows to append, in order: (file, frame, line)
@@ -151,22 +154,23 @@ class RunFolder:
                                          int(t.get("best_interval", -1)), t.get("best_score", -1)))
         tid = int(t["id"])
         interval = t.get("interval")
-        firsts = []
+        first = False
         if tid not in self.template_first:
-            self.template_first[tid] = frame
-            firsts.append(frame)
+            self.template_first.set(tid, (frame,))
+            first = True
         if interval is not None and int(interval) not in self.interval_first:
-            self.interval_first[int(interval)] = frame
-            firsts.append(frame)
-        if firsts:
-            self._first_frames.add(frame)
+            self.interval_first.set(int(interval), (frame,))
+            first = True
+        if first:
             if frame in self.gt:
-                self.places[frame] = self.gt[frame]
+                self.places.set(frame, self.gt[frame])
+            else:
+                self._await_place(frame)
         self.last_template_frame = max(self.last_template_frame, frame)
         if t.get("is_loop_closure"):
             best = int(t.get("best_interval", -1))
-            matched = self.interval_first.get(best, -1) if interval is not None and best >= 0 \
-                else self.template_first.get(tid, -1)
+            matched = _first(self.interval_first, best) if interval is not None and best >= 0 \
+                else _first(self.template_first, tid)
             self.closures_waiting.append(WaitingClosure(frame, stamp, tid, matched, self.gt.get(frame),
                                                         t.get("best_score"), t.get("second_score"),
                                                         t.get("confidence")))
@@ -187,8 +191,9 @@ class RunFolder:
         """The true pose of a frame: the places of template firsts and the closures' distances."""
         xy = (float(pose[0]), float(pose[1]))
         self.gt_last_frame = max(self.gt_last_frame, frame)
-        if frame in self._first_frames:
-            self.places[frame] = xy
+        if frame in self._awaiting_place:
+            self._awaiting_place.discard(frame)
+            self.places.set(frame, xy)
         if frame >= self.last_template_frame:
             self.gt[frame] = xy
             if len(self.gt) > GT_KEEP:  # no template for a long time (a stalled front end): bounded
@@ -262,6 +267,7 @@ class RunFolder:
                 if r.frame not in self._written[f]:
                     self._backlog.append((f, r.frame, f.line(r).encode()))
         self._write_backlog()
+        self._spill()
 
     def _create(self) -> None:
         lines, entries = self._carried()  # read before the files are cut (the same folder, resumed)
@@ -316,9 +322,10 @@ class RunFolder:
                 # without a checkpoint lost them; their true positions stay unknown: empty distances)
                 for raw in rows[:keep[f]]:
                     cols = raw.split(b",")
-                    if len(cols) >= 3 and cols[0].isdigit() and cols[2].lstrip(b"-").isdigit():
-                        self.template_first.setdefault(int(cols[2]), int(cols[0]))
-        self._first_frames |= set(self.template_first.values())
+                    if len(cols) >= 3 and cols[0].isdigit() and cols[2].lstrip(b"-").isdigit() \
+                            and int(cols[2]) not in self.template_first:
+                        self.template_first.set(int(cols[2]), (int(cols[0]),))
+                        self._await_place(int(cols[0]))
         kept, seen = [], dict.fromkeys(ROW_FILES, 0)
         for f, frame in entries:
             if seen[f] < keep[f]:
@@ -443,6 +450,33 @@ class RunFolder:
             if f is not None:
                 f.close()
         self._files, self._journal = None, None
+        self._discard_numbers()
+
+    # ------------------------------------------------------------------ numbers kept per frame
+    def _numbers(self) -> dict[str, NumberRows]:
+        """The per-frame number stores, by the name of their scratch file."""
+        out = {"local_poses": self._local}
+        if self._mcap_rows is not None:
+            out.update(mcap_templates=self._mcap_rows[TEMPLATES], mcap_poses=self._mcap_rows[TRAJECTORY])
+        return out
+
+    def _spill(self) -> None:
+        """With the files open, the per-frame numbers go to scratch files of the run folder."""
+        if self._files is None or self._keep:
+            return
+        for name, rows in self._numbers().items():
+            rows.spill_to(self._path(f".{name}.f64"))
+
+    def _discard_numbers(self) -> None:
+        for rows in self._numbers().values():
+            rows.discard()
+
+    def _await_place(self, frame: int) -> None:
+        """A first frame whose true place may come later (the newest GT_KEEP wait: without ground
+        truth none comes)."""
+        self._awaiting_place.add(frame)
+        if len(self._awaiting_place) > 2 * GT_KEEP:
+            self._awaiting_place = set(sorted(self._awaiting_place)[-GT_KEEP:])
 
     def info(self) -> dict[str, Any]:
         out: dict[str, Any] = {"template_rows": self.n_rows[TEMPLATES], "trajectory_rows": self.n_rows[TRAJECTORY],
@@ -452,9 +486,6 @@ class RunFolder:
         return out
 
     def state_dict(self) -> dict[str, Any]:
-        def ints(d: dict[int, int]) -> np.ndarray:
-            return np.array(sorted(d.items()), dtype=np.int64).reshape(-1, 2)
-
         def where(d: dict[int, tuple[float, float]]) -> np.ndarray:
             return np.array([(k, *v) for k, v in sorted(d.items())], dtype=np.float64).reshape(-1, 3)
 
@@ -462,8 +493,9 @@ class RunFolder:
                 "closures": [list(r) for r in self.closures],
                 "closures_waiting": [[*r[:4], None if r.true_xy is None else list(r.true_xy), *r[5:]]
                                      for r in self.closures_waiting],
-                "template_first": ints(self.template_first), "interval_first": ints(self.interval_first),
-                "places": where(self.places), "gt": where(self.gt), "gt_last_frame": self.gt_last_frame,
+                "template_first": self.template_first.items().astype(np.int64),
+                "interval_first": self.interval_first.items().astype(np.int64),
+                "places": self.places.items(), "gt": where(self.gt), "gt_last_frame": self.gt_last_frame,
                 "local_poses": self.local_poses.copy(),
                 **({"mcap_rows": [self._mcap_rows[f].latest_by_frame() for f in (TEMPLATES, TRAJECTORY)]}
                    if self._mcap_rows is not None and not self._keep else {}),
@@ -482,21 +514,27 @@ class RunFolder:
                                                 None if r[4] is None else (float(r[4][0]), float(r[4][1])), r[5], r[6],
                                                 r[7])
                                  for r in st["closures_waiting"]]
-        self.template_first = {int(k): int(v) for k, v in np.asarray(st["template_first"], dtype=np.int64).reshape(-1, 2)}
-        self.interval_first = {int(k): int(v) for k, v in np.asarray(st["interval_first"], dtype=np.int64).reshape(-1, 2)}
-        self.places = {int(r[0]): (float(r[1]), float(r[2]))
-                       for r in np.asarray(st["places"], dtype=np.float64).reshape(-1, 3)}
+        self.template_first = KeyedNumbers(1, st["template_first"])
+        self.interval_first = KeyedNumbers(1, st["interval_first"])
+        self.places = KeyedNumbers(2, st["places"])
         self.gt = {int(r[0]): (float(r[1]), float(r[2])) for r in np.asarray(st["gt"], dtype=np.float64).reshape(-1, 3)}
+        self._discard_numbers()
         self._local = NumberRows(6, st["local_poses"])
         if self._mcap_rows is not None and "mcap_rows" in st:
             self._mcap_rows = {f: NumberRows(w, a) for f, w, a in zip((TEMPLATES, TRAJECTORY), (4, 6), st["mcap_rows"],
                                                                          strict=True)}
+        self._spill()
         self.n_rows = {f: int(st["n_rows"][f.tag]) for f in ROW_FILES}
         self._carry = (st["run_dir"], {k: int(v) for k, v in st["rows_in_files"].items()}) \
             if "rows_in_files" in st else None
         self.gt_last_frame = int(st["gt_last_frame"])
         self.last_template_frame = int(st["last_template_frame"])
-        self._first_frames = set(self.template_first.values()) | set(self.interval_first.values())
+        # first frames after the last ground truth may still get their place
+        firsts = np.concatenate([self.template_first.items()[:, 1], self.interval_first.items()[:, 1]])
+        self._awaiting_place = set()
+        for f in np.unique(firsts[firsts > self.gt_last_frame]).astype(np.int64).tolist():
+            if f not in self.places:
+                self._await_place(f)
 
     def new_session(self) -> None:
         """A new session on an old map: this session's outputs only; an old session's templates may
@@ -506,10 +544,18 @@ class RunFolder:
             self.rows[f] = deque()
         self.n_rows = dict.fromkeys(ROW_FILES, 0)
         self.map_export, self.closures_waiting = None, []
+        self._discard_numbers()
         self._local = NumberRows(6)
         if self._mcap_rows is not None:
             self._mcap_rows = {TEMPLATES: NumberRows(4), TRAJECTORY: NumberRows(6)}
-        self.template_first, self.interval_first, self.places, self.gt = {}, {}, {}, {}
-        self._first_frames = set()
+        self._spill()
+        self.template_first, self.interval_first, self.places = KeyedNumbers(1), KeyedNumbers(1), KeyedNumbers(2)
+        self.gt, self._awaiting_place = {}, set()
         self.gt_last_frame = self.last_template_frame = -1
         self._carry = None  # an old session's rows are not this session's
+
+
+def _first(store: KeyedNumbers, key: int) -> int:
+    """The first frame a template / interval store holds for ``key``; -1 where none."""
+    v = store.get(key)
+    return -1 if v is None else int(v[0])

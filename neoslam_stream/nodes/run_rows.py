@@ -120,29 +120,6 @@ CLOSURES = RowFile("closures.csv", CLOSURES_HEADER, "c", closure_line)
 ROW_FILES = (TEMPLATES, TRAJECTORY, CLOSURES)
 
 
-class NumberRows:
-    """Rows of ``width`` numbers in a float64 store grown by doubling (8 bytes a number, where a
-    row of Python objects takes ~30 a number): what the run folder keeps of every frame."""
-
-    def __init__(self, width: int, rows: np.ndarray | None = None) -> None:
-        rows = np.zeros((0, width)) if rows is None else np.asarray(rows, dtype=np.float64).reshape(-1, width)
-        self._a = np.zeros((max(1024, 2 * rows.shape[0]), width))
-        self._a[:rows.shape[0]] = rows
-        self.n = rows.shape[0]
-
-    def append(self, row: tuple[float, ...]) -> None:
-        if self.n == self._a.shape[0]:
-            self._a = np.concatenate([self._a, np.zeros_like(self._a)])
-        self._a[self.n] = row
-        self.n += 1
-
-    def latest_by_frame(self) -> np.ndarray:
-        """The rows (column 0: the frame), the latest of each frame, in frame order."""
-        rows = self._a[:self.n]
-        _, last = np.unique(rows[::-1, 0], return_index=True)
-        return rows[::-1][last]
-
-
 def rows_written_before(run_dir: str, counts: dict[str, int], journal: str
                         ) -> tuple[dict[str, list[bytes]], list[tuple[str, int]]]:
     """What a checkpoint's run folder held when the checkpoint was cut, for a run resumed from it

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from typing import Any
 
-#: the live hour's bound (issue text: flat within 50 MB after the first ten minutes)
+#: the live hour's bound: flat within 50 MB after the first ten minutes (docs/long_runs.md)
 FLAT_WITHIN_MB = 50.0
 #: the warm-up left out of the verdict, seconds
 FLAT_AFTER_S = 600.0

@@ -186,7 +186,11 @@ def test_recorder_writes_outputs_mcap_readable_by_the_mcap_reader(tmp_path):
         rec.process(VISUAL_TEMPLATE, Message(VISUAL_TEMPLATE, f, t, {"id": 100 + f, "is_loop_closure": f == 6}))
         rec.process(EXPERIENCE_POSE, Message(EXPERIENCE_POSE, f, t, {"pose": np.array([x, y, th]), "exp_id": exp}))
     rec.flush()
+    # the rows the file was made of (read before close, which removes the writer's scratch files)
+    conv = Ros2Messages(**params)
+    rows = rec.folder.mcap_rows()
     rec.close()
+    assert not list(tmp_path.glob("*.f64"))
     with open(tmp_path / MCAP, "rb") as fh:
         msgs = list(make_reader(fh, decoder_factories=[DecoderFactory()]).iter_decoded_messages())
     assert {s.encoding for s, _, _, _ in msgs} == {"ros2msg"} and {c.message_encoding for _, c, _, _ in msgs} == {"cdr"}
@@ -196,9 +200,8 @@ def test_recorder_writes_outputs_mcap_readable_by_the_mcap_reader(tmp_path):
         assert m.log_time == round((10.0 + 0.25 * f) * 1e9)
         _check_pose(d.pose.pose, x, y, th)
     # the same messages as the live output gets from the same topics
-    conv = Ros2Messages(**params)
-    expected = list(replay(conv, *rec.folder.mcap_rows(), None))
-    assert [r.template_id for r in rec.folder.mcap_rows()[0]] == [100 + f for f in range(len(WALK))]
+    expected = list(replay(conv, *rows, None))
+    assert [r.template_id for r in rows[0]] == [100 + f for f in range(len(WALK))]
     assert [c.topic for _, c, _, _ in msgs] == [o.topic for o in expected]
     assert [m.data for _, _, m, _ in msgs] == [conv.serialize(o) for o in expected]
 

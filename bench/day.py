@@ -149,7 +149,8 @@ def ape_by_lap(run_dir: Path, gt: np.ndarray, route: int, name: str = "trajector
     ref = gt[frames % route, :2]
     lap = frames // route
     out = []
-    R, t = umeyama_se2(traj[:, 1:3], ref)
+    if not per_lap:
+        R, t = umeyama_se2(traj[:, 1:3], ref)
     for k in range(int(lap.max()) + 1):
         m = lap == k
         if per_lap:

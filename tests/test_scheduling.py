@@ -85,3 +85,16 @@ def test_bus_tx_queue_reaches_every_process_config(tmp_path, monkeypatch):
     for bad in (0, 65):
         with pytest.raises(ConfigError, match="tx_queue"):
             load_config("default", {"bus": {"tx_queue": bad}})
+
+
+def test_thread_budget_after_numba_was_loaded_still_compiles(tmp_path):
+    """A spawn child may have loaded numba (its parent's script imported the package) before the
+    budget is set; a first, uncached compilation under the new budget must still work."""
+    code = ("import numba; from neoslam_stream.runtime.procs import set_thread_budget; "
+            "set_thread_budget(1); numba.set_num_threads(1); "
+            "f = numba.njit(lambda x: x + 1); print(f(1), numba.config.NUMBA_NUM_THREADS)")
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_NUM_THREADS"}
+    env["NUMBA_CACHE_DIR"] = str(tmp_path)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["2", "1"]

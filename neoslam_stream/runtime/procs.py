@@ -26,10 +26,21 @@ THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NU
 
 
 def set_thread_budget(threads: int) -> None:
-    """Limit every math library of this process to ``threads`` threads (call before importing them)."""
+    """Limit every math library of this process to ``threads`` threads (call before importing them).
+
+    A ``spawn`` child imports its parent's main script before it reaches the entry point, so a
+    script that imports the package at its top (a bench, a user's own) has loaded numba here
+    already, with the parent's thread count. numba reads its environment again before every
+    compilation and refuses a changed count once its pool runs; so it re-reads it now, while no
+    pool runs yet, or the first uncached compilation in this process would fail.
+    """
     n = str(max(1, int(threads)))
     for var in THREAD_VARS:
         os.environ[var] = n
+    if "numba" in sys.modules:
+        from numba.core import config as numba_config
+
+        numba_config.reload_config()
 
 
 #: prctl option: the signal this process gets when its parent dies (linux/prctl.h)

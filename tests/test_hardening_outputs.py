@@ -495,3 +495,78 @@ def test_the_supervisor_does_not_restart_a_worker_that_refused_its_state(tmp_pat
     with pytest.raises(RunError, match="refused the saved state"):
         sup.children.wait_ready(["D"], timeout=5)
     assert restarted == []
+
+
+# ------------------------------------------------------------------------------ the end of a run
+class WatcherNode(Node):
+    """A watcher whose flush (the recorder's: writing its files) notes which final states were
+    already on disk when it began."""
+
+    inputs = ("probe",)
+    outputs = ()
+    observer = True
+
+    def __init__(self, state_dir: str) -> None:
+        super().__init__()
+        self.state_dir = Path(state_dir)
+        self.seen_at_flush: list[str] = []
+
+    def process(self, topic, msg):
+        return []
+
+    def flush(self):
+        self.seen_at_flush = sorted(p.name for p in self.state_dir.iterdir()) if self.state_dir.exists() else []
+        return []
+
+
+def make_watcher(state_dir: str) -> WatcherNode:
+    return WatcherNode(state_dir)
+
+
+def test_a_worker_saves_what_its_stages_learned_before_its_watcher_writes_files(tmp_path):
+    # a watcher's flush may outlast the supervisor's patience on a long run: by then the learned
+    # state and the worker's marker must be on disk
+    state_dir = tmp_path / "state"
+    w = Worker(WorkerSpec(name="probe", stages=[NodeSpec("watcher", f"{__name__}:make_watcher",
+                                                         params={"state_dir": str(state_dir)}, observer=True),
+                                                NodeSpec("probe", f"{__name__}:make_probe")],
+                          run="test-run", run_dir=str(tmp_path), lossless=True))
+    w.build()
+    w.setup()
+    w.bus = FakeBus()  # type: ignore[assignment]
+    w.handle("probe", _probe(0), time.time())
+    w.publish_stats = lambda final=False: None  # no bus session here
+    w.shutdown()
+    watcher = next(st.node for st in w.stages if st.name == "watcher")
+    assert watcher.seen_at_flush == ["probe.saved", "probe.state"]
+    assert (state_dir / "probe.saved").read_text().strip() == '["probe"]'
+
+
+def _run_folder_with_states(tmp_path: Path, forced: list[str], marked: list[str]) -> Path:
+    import json
+
+    from neoslam_stream.runtime.checkpoint import save_state_file
+
+    run = tmp_path / "run"
+    for stage in ("B", "pose_cells"):  # the map's worker never got to write experience_map.state
+        save_state_file(run / "state" / f"{stage}.state", {"n": 1})
+    for worker in marked:
+        (run / "state" / f"{worker}.saved").write_text("[]\n")
+    (run / "report.json").write_text(json.dumps({
+        "workers": {"B": ["B"], "pose_cells": ["pose_cells"], "experience_map": ["experience_map", "recorder"]},
+        "stopped_by_force": forced}))
+    return run
+
+
+def test_a_map_is_not_exported_without_the_state_of_a_worker_stopped_before_it_saved(tmp_path):
+    from neoslam_stream.runtime.checkpoint import export_map
+
+    run = _run_folder_with_states(tmp_path, forced=["experience_map"], marked=["B", "pose_cells"])
+    with pytest.raises(ValueError, match=r"stopped worker experience_map \(stages experience_map, recorder\) "
+                                         r"by force .* the map would be incomplete"):
+        export_map(run, tmp_path / "m.neoslam")
+    assert not (tmp_path / "m.neoslam").exists()
+    # a worker stopped by force after it had saved (its marker is there), or none stopped: exported
+    for forced, marked in ((["experience_map"], ["experience_map"]), ([], [])):
+        run = _run_folder_with_states(tmp_path / f"{forced}{marked}", forced=forced, marked=marked)
+        assert export_map(run, tmp_path / "ok.neoslam")["stages"] == ["B", "pose_cells"]

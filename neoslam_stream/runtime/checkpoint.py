@@ -166,12 +166,36 @@ def run_states(run_dir: str | Path) -> tuple[dict[str, dict[str, Any]], str]:
     raise FileNotFoundError(f"{run_dir} holds no saved state (neither state/ nor checkpoint/)")
 
 
+def _check_final_states(run_dir: Path, states: dict[str, Any], origin: str) -> None:
+    """A run's end-of-run states are whole unless a worker the supervisor stopped by force (its
+    report's ``stopped_by_force``) had not written them yet (no ``state/<worker>.saved``): packed
+    as they are, the map would lack that worker's stages, and a later session would start them
+    afresh beside the others' learned state. Raises ValueError naming them."""
+    import json
+
+    if Path(origin) != run_dir / "state":
+        return
+    try:
+        report = json.loads((run_dir / "report.json").read_text())
+    except (OSError, ValueError):
+        return
+    workers = report.get("workers") or {}
+    missing = {w: [s for s in workers.get(w, []) if s not in states]
+               for w in report.get("stopped_by_force") or [] if not (run_dir / "state" / f"{w}.saved").exists()}
+    if missing:
+        said = "; ".join(f"worker {w} (stages {', '.join(s) or 'none saved'})" for w, s in missing.items())
+        raise ValueError(f"{run_dir}: the supervisor stopped {said} by force at the end of the run, before it "
+                         f"saved its final state (report.json stopped_by_force), so state/ lacks it and the map "
+                         f"would be incomplete; export from a run that ended in time")
+
+
 def export_map(run_dir: str | Path, out: str | Path) -> dict[str, Any]:
     """Pack a run's learned state (templates, TM connections, intervals, pose cells, experience
     map) into one portable file (msgpack, no pickle) for ``neoslam run --map``."""
     import json
 
     states, origin = run_states(run_dir)
+    _check_final_states(Path(run_dir), states, origin)
     cfg_path = Path(run_dir) / "config.yaml"
     meta = {"format": MAP_FORMAT, "version": MAP_VERSION, "from_run": str(Path(run_dir).resolve()),
             "from_states": origin, "config_yaml": cfg_path.read_text() if cfg_path.exists() else ""}

@@ -32,7 +32,8 @@ class Children:
     """This host's processes of a run (module docstring). The supervisor owns one and gives it the
     layout (which processes run here, their specs), the collector (the source's frame count at a
     restart) and the run's start time; ``session`` is the supervisor's, set once it is open.
-    ``restarts`` and ``restart_events`` are what the report says about restarts."""
+    ``restarts`` and ``restart_events`` are what the report says about restarts, ``stopped_by_force``
+    the processes that did not stop in time at the end (their final state may be missing)."""
 
     def __init__(self, layout: RunLayout, collector: StatsCollector, t_start: float) -> None:
         self.layout = layout
@@ -43,6 +44,7 @@ class Children:
         self.procs: dict[str, Any] = {}
         self.restarts: dict[str, int] = {}
         self.restart_events: list[dict[str, Any]] = []
+        self.stopped_by_force: list[str] = []
         #: SIGINT/SIGTERM received, and the last one (the run's exit status names it)
         self.interrupts = 0
         self.last_signal: int | None = None
@@ -188,6 +190,7 @@ class Children:
                 p.join(max(0.1, deadline - time.monotonic()))
                 if p.is_alive():
                     log.warning("%s did not stop in time; terminating", n)
+                    self.stopped_by_force.append(n)
                     p.terminate()
                     p.join(5)
                 if p.is_alive():

@@ -293,6 +293,8 @@ class Supervisor:
                                    self.layout.meta()))
         report["restarts"] = dict(children.restarts)
         report["restart_events"] = list(children.restart_events)
+        # a worker stopped by force may not have saved its final state: `neoslam map export` reads this
+        report["stopped_by_force"] = list(children.stopped_by_force)
         report["signal"] = children.last_signal if interrupted else None
         report["source_failure"] = self.source_failure
         report["interrupted"] = interrupted

@@ -398,18 +398,16 @@ class Worker:
                 break
 
     def shutdown(self) -> None:
-        for i, st in enumerate(self.stages):
-            held, st.deferred = st.deferred, []
-            for t, m, r in held:  # the stream ended before every input reached the next cut
-                self._process(i, t, [m], [r])
-            try:
-                outs = st.node.flush()
-            except Exception as exc:
-                log.error("stage %s flush failed: %s", st.name, exc)
-                outs = []
-            now = time.time()
-            self._emit(i, outs, st.name, {}, now, now)
-        self.cuts.save_final_states(self.stages)
+        """Flush every stage, the stages that learn first: their final states are saved before a
+        watcher (the recorder) writes its files, which on a long run may take longer than the
+        supervisor waits; a worker stopped then has its learned state saved all the same."""
+        learners = [i for i, st in enumerate(self.stages) if not st.node.observer]
+        for i in learners:
+            self._flush(i)
+        self.cuts.save_final_states(self.stages, self.spec.name)
+        for i in range(len(self.stages)):
+            if i not in learners:
+                self._flush(i)
         self.publish_stats(final=True)
         # samples still in flight are lost if the session closes at once
         time.sleep(0.3)
@@ -418,6 +416,20 @@ class Worker:
                 st.node.close()
             except Exception as exc:
                 log.error("stage %s close failed: %s", st.name, exc)
+
+    def _flush(self, i: int) -> None:
+        """Stage i at the stream's end: what it deferred, then its flush, published."""
+        st = self.stages[i]
+        held, st.deferred = st.deferred, []
+        for t, m, r in held:  # the stream ended before every input reached the next cut
+            self._process(i, t, [m], [r])
+        try:
+            outs = st.node.flush()
+        except Exception as exc:
+            log.error("stage %s flush failed: %s", st.name, exc)
+            outs = []
+        now = time.time()
+        self._emit(i, outs, st.name, {}, now, now)
 
 
 def run_worker(spec: WorkerSpec) -> None:

@@ -9,6 +9,7 @@ RUN_DIR/state/ (the map ``neoslam map export`` packs). File formats: checkpoint.
 
 from __future__ import annotations
 
+import json
 import logging
 from collections.abc import Callable
 from pathlib import Path
@@ -132,9 +133,12 @@ class CheckpointCuts:
                 if ready_m:
                     process(t, ready_m, ready_r)
 
-    def save_final_states(self, stages: list[StageRuntime]) -> None:
+    def save_final_states(self, stages: list[StageRuntime], worker: str) -> None:
         """Every stateful stage's state at the end of the run, in RUN_DIR/state/ (the map that
-        ``neoslam map export`` packs), written atomically."""
+        ``neoslam map export`` packs), written atomically; then ``<worker>.saved``, the names of
+        the states written, which tells the export that this worker got as far (a worker the
+        supervisor stopped by force before it did has none: its stages' states may be missing)."""
+        saved = []
         for st in stages:
             if st.node.observer:  # what a watcher holds (rows of output files) is no learned map
                 continue
@@ -143,7 +147,14 @@ class CheckpointCuts:
                 state = st.node.state_dict()
                 if state:
                     save_state_file(path, state)
+                    saved.append(st.name)
             except OSError as exc:  # disk full: the previous file (if any) is intact; say so
                 count_write_error(st, path, exc)
             except Exception as exc:  # never lose the flush over it; say so
                 log.error("stage %s: final state not saved: %s", st.name, exc)
+        marker = Path(self.run_dir) / "state" / f"{worker}.saved"
+        try:
+            marker.parent.mkdir(parents=True, exist_ok=True)
+            marker.write_text(json.dumps(saved) + "\n")
+        except OSError as exc:
+            log.error("worker %s: %s not written: %s", worker, marker, exc)

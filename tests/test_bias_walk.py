@@ -30,7 +30,7 @@ def test_wander_is_the_mean_squared_change_of_the_bias_per_second(tmp_path):
     #   older: (0.03 - 0.01)^2 / 40;
     # t = 100: experience 1 again after 60 s (all at 0.03) -> b = 0.03; the latest sample at least
     #   30 s older is still the one at 40 (80 is only 20 s back): (0.03 - 0.01)^2 / 60
-    est = YawBiasEstimator(enabled=True, min_gap_s=30.0, forget_s=1e-9, max_residual_rad_s=1.0)
+    est = YawBiasEstimator(enabled=True, min_gap_s=30.0, forget_s=1e-9, max_residual_rad_s=1.0, reference="first")
     est.on_action(CREATE_NODE, 0)
     _drive(est, 0.01, 40.0)
     est.on_action(SET_NODE, 0)
@@ -47,9 +47,33 @@ def test_wander_is_the_mean_squared_change_of_the_bias_per_second(tmp_path):
     from neoslam_stream.runtime.checkpoint import load_state_file, save_state_file
 
     save_state_file(tmp_path / "s", est.state_dict())
-    again = YawBiasEstimator(enabled=True, min_gap_s=30.0, forget_s=1e-9, max_residual_rad_s=1.0)
+    again = YawBiasEstimator(enabled=True, min_gap_s=30.0, forget_s=1e-9, max_residual_rad_s=1.0, reference="first")
     again.load_state_dict(load_state_file(tmp_path / "s"))
     assert again.wander == est.wander and list(again._history) == list(est._history)
+
+
+@pytest.mark.parametrize("reference,after", [("latest", 0.03), ("first", 0.02)])
+def test_a_return_is_compared_with_the_places_latest_visit(reference, after):
+    # standing still, by hand: bias 0.01 rad/s for 40 s, back at place 0 (drift 0.4 rad over 40 s);
+    # then 0.03 rad/s for 40 s and back again: against the latest visit 1.2 rad over 40 s (the bias
+    # now), against the first 1.6 rad over 80 s (its mean since then); a return 20 s after the
+    # latest one is under min_gap_s and leaves the reference where it was
+    est = YawBiasEstimator(enabled=True, min_gap_s=30.0, forget_s=1e-9, max_residual_rad_s=1.0,
+                           samples_from="templates", reference=reference)
+    est.on_template(0)
+    est.on_template(1)
+    _drive(est, 0.01, 40.0)
+    est.on_template(0)
+    assert est.bias == pytest.approx(0.01)
+    est.on_template(2)  # each time away, a view not seen before: no sample but place 0's
+    _drive(est, 0.03, 20.0)
+    est.on_template(0)
+    assert est.samples == (1 if reference == "latest" else 2)
+    est.on_template(3)
+    _drive(est, 0.03, 20.0)
+    est.on_template(0)
+    assert est.bias == pytest.approx(after)
+    assert est.born[0] == pytest.approx((0.4 + 1.2, 80.0) if reference == "latest" else (0.0, 0.0))
 
 
 def test_the_weights_are_inverse_variances_of_each_link():

@@ -7,7 +7,12 @@ integral and gap_i = t - t_e
     drift_i = wrap(H(t) - H(t_e) - relative_rad - b gap_i) + b gap_i
 
 (wrapped around the current estimate; modulo pi when ``bidirectional``, for a front end that also
-recognises a place seen the other way round). b = sum w_i drift_i gap_i / sum w_i gap_i^2, with
+recognises a place seen the other way round). t_e is the place's latest visit at least ``min_gap_s``
+before (``reference: latest``), or its first (``first``). A sample averages the bias over its gap,
+and its heading is known only modulo a turn: against the first visit, after hours of driving it
+averages a bias that has wandered since and can move b by at most pi / gap, so a wandering bias
+slips past the estimate, which then follows an alias (docs/long_runs.md: a day's run). The latest
+visit keeps the gap at one loop. b = sum w_i drift_i gap_i / sum w_i gap_i^2, with
 w_i = exp(-age_i / forget_s); closures sooner than ``min_gap_s`` are not used, and a rate further
 than ``max_residual_rad_s`` from b is an outlier. Samples come from the pose cells' returns to an
 experience (``samples_from: actions``) or from every recognised template (``templates``: a
@@ -48,6 +53,9 @@ class OdometryBiasConfig(BaseModel):
         "actions", description="returns of the pose cells to an experience, or recognised visual templates")
     bidirectional: bool = Field(False, description="places are also recognised seen the other way round: "
                                                    "headings are compared modulo pi")
+    reference: Literal["latest", "first"] = Field(
+        "latest", description="the heading a return is compared with: the place's latest visit at least "
+                              "min_gap_s before, or its first (module docstring)")
 
 
 class YawBiasEstimator:
@@ -62,7 +70,8 @@ class YawBiasEstimator:
         #: H(t): the raw yaw rate's integral, and t: the odometry's time
         self.heading = 0.0
         self.t = 0.0
-        #: experience (or template, with samples_from templates) id -> (H, t) at its creation
+        #: experience (or template, with samples_from templates) id -> (H, t) at its creation, or
+        #: at its latest visit that was a sample (``reference: latest``)
         self.born: dict[int, tuple[float, float]] = {}
         self.last_template = -1
         self._sum_dg = self._sum_gg = 0.0
@@ -121,6 +130,8 @@ class YawBiasEstimator:
         gap = self.t - t0
         if gap < self.config.min_gap_s or gap <= 0:
             return
+        if self.config.reference == "latest":  # the next return is compared with this visit, outlier or not
+            self.born[ref] = (self.heading, self.t)
         drift = self._wrap(self.heading - h0 - relative_rad - self.bias * gap) + self.bias * gap
         if self.samples and abs(drift / gap - self.bias) > self.config.max_residual_rad_s:
             self.outliers += 1

@@ -17,6 +17,10 @@ on the map at the end of the replay, one alignment of the whole replay, as day.p
 ``ape_final_map_m``), the yaw-rate bias the estimator holds and the route's true one (the synthetic
 odometry's bias and random walk at that frame), experiences, links and the map's solve time.
 Targets as day.py's: each lap's APE, online and on the final map, within 10 % of lap 2's.
+``--export`` also packs, per variant, the run's saved front-end states with the replayed pose cells
+and map (bench/results/day_runs/back_end_<variant>.neoslam, outside git): the map file such a day
+would have left, for ``neoslam run --map``; the variant replaying the run's own back end must end
+with the pose cells the run saved (``reproduces_run_end``).
 
 Run: ``.venv/bin/python bench/day_back_end.py --run bench/results/day_runs/day
 --as-recorded pose_cells.odometry_bias.reference=first --variant
@@ -110,8 +114,9 @@ def replay(run_dir: str, settings: list[str], laps: int | None, states: bool = F
     first_lap = np.zeros((min(route, n), 3))
     local = np.zeros((n, 4))
     rows, t0, solve0 = [], time.perf_counter(), 0.0
+    dt = 1.0 / rate_hz
     for i in range(n):
-        p = be.step(int(tpl[i]), 0.0, *odo[i], stamp=i / rate_hz)
+        p = be.step(int(tpl[i]), 0.0, *odo[i], stamp=i * dt)  # the source's stamps, to the bit
         online[i % route] = p.pose[:2]
         local[i] = (p.exp_id, *p.local)
         if i < route:
@@ -135,13 +140,13 @@ def replay(run_dir: str, settings: list[str], laps: int | None, states: bool = F
     for r in rows:
         k = r["lap"] - 1
         r["ape_final_map_m"] = round(float(err[k * route:(k + 1) * route].mean()), 4)
-    out = {"settings": settings, "laps": rows, "first_lap_poses": first_lap}
+    out = {"settings": settings, "laps": rows, "first_lap_poses": first_lap, "frames": n}
     if states:
         pc = PoseCellsNode(**sections["pose_cells"])
         pc.stage = be.pose_cells
         pc.last_template_frame = pc.max_odom_frame = pc.last_odom_frame = n - 1
         emn = ExperienceMapNode(**sections["experience_map"])
-        emn.em, emn.last_frame, emn.last_stamp = em, n - 1, (n - 1) / rate_hz
+        emn.em, emn.last_frame, emn.last_stamp = em, n - 1, (n - 1) * dt
         out["states"] = {"pose_cells": pc.state_dict(), "experience_map": emn.state_dict()}
     return out
 
@@ -224,7 +229,8 @@ def main() -> None:
                          "since): the replay of its own config, which must give its trajectory.tum, uses them")
     ap.add_argument("--laps", type=int, help="the first N laps only")
     ap.add_argument("--export", action="store_true",
-                    help="also write <out>_<variant>.neoslam: the run's front-end states with the variant's back end")
+                    help="also write bench/results/day_runs/back_end_<variant>.neoslam (outside git): the run's "
+                         "front-end states with the variant's back end")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "day_back_end.json"))
     args = ap.parse_args()
     if args.export and args.laps is not None:
@@ -250,9 +256,9 @@ def main() -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     for name, v in done.items():
         res["variants"][name] = {"settings": v["settings"], "targets": targets(v["laps"]), "laps": v["laps"]}
-        res["frames"] = len(v["laps"]) * len(own)
+        res["frames"] = v["frames"]
         if "states" in v:
-            path = out.parent / f"{out.stem}_{name}.neoslam"
+            path = out.parent / "day_runs" / f"back_end_{name}.neoslam"  # beside day.py's exports, outside git
             export_with(run_dir, v["states"], res["frames"], path)
             res["variants"][name]["export"] = str(path)
             # the run's own back end, replayed whole: its pose cells end as the run's saved ones
@@ -262,7 +268,7 @@ def main() -> None:
                 res["reproduces_run_end"] = _same(saved, v["states"]["pose_cells"])
     out.write_text(json.dumps(res, indent=1))
     plot(res, out.with_suffix(".png"))
-    print(json.dumps({"reproduces_run": res["reproduces_run"],
+    print(json.dumps({"reproduces_run": res["reproduces_run"], "reproduces_run_end": res.get("reproduces_run_end"),
                       **{n: v["targets"] for n, v in res["variants"].items()}}, indent=1))
 
 

@@ -135,19 +135,25 @@ def choose(valid: dict[str, dict[str, dict[str, float]]]) -> dict[str, Any]:
     return {"rule": RULE, "scores": scores, "eligible": eligible, "forget_s": float(chosen)}
 
 
+def validate_then_report(res: dict[str, Any], rows: Any, rule: Any, out: str) -> None:
+    """The protocol: ``rows(part)`` on every validation part, ``rule`` over them (the choice), then
+    the held-out parts, all written to ``out`` with what ``res`` already holds."""
+    res.update({"validation": {}, "test": {}})
+    for part in VALIDATION:
+        res["validation"][part] = rows(part)
+    res["choice"] = rule(res["validation"])
+    print("choice", json.dumps(res["choice"]), flush=True)
+    for part in TEST:
+        res["test"][part] = rows(part)
+    Path(out).write_text(json.dumps(res, indent=1))
+    print(f"wrote {out}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default=str(RESULTS / "bias_forgetting.json"))
     args = ap.parse_args()
-    res: dict[str, Any] = {"forget_s": list(FORGET), "validation": {}, "test": {}}
-    for part in VALIDATION:
-        res["validation"][part] = part_rows(part)
-    res["choice"] = choose(res["validation"])
-    print("choice", json.dumps(res["choice"]), flush=True)
-    for part in TEST:
-        res["test"][part] = part_rows(part)
-    Path(args.out).write_text(json.dumps(res, indent=1))
-    print(f"wrote {args.out}")
+    validate_then_report({"forget_s": list(FORGET)}, part_rows, choose, args.out)
 
 
 if __name__ == "__main__":

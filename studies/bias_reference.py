@@ -22,12 +22,11 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
 from typing import Any
 
 import _paths  # the package and bench/ on sys.path
-from bias_forgetting import default_back_end, front_end_stream, replay, tuc_half
-from relaxation import TEST, VALIDATION
+from bias_forgetting import default_back_end, front_end_stream, replay, tuc_half, validate_then_report
+from relaxation import VALIDATION
 
 REFERENCES = ("first", "latest")
 SLACK = 1.05
@@ -58,15 +57,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default=str(_paths.RESULTS / "bias_reference.json"))
     args = ap.parse_args()
-    res: dict[str, Any] = {"references": list(REFERENCES), "validation": {}, "test": {}}
-    for part in VALIDATION:
-        res["validation"][part] = part_rows(part)
-    res["choice"] = choose(res["validation"])
-    print("choice", json.dumps(res["choice"]), flush=True)
-    for part in TEST:
-        res["test"][part] = part_rows(part)
-    Path(args.out).write_text(json.dumps(res, indent=1))
-    print(f"wrote {args.out}")
+    validate_then_report({"references": list(REFERENCES)}, part_rows, choose, args.out)
 
 
 if __name__ == "__main__":

@@ -23,7 +23,8 @@ than after lap 3.
 
 Run (the target run: two hours of wall time on a quiet machine, about seven hours of 30-FPS
 driving): ``.venv/bin/python bench/day.py --duration 7200 --out bench/results/day.json``; a short
-check: ``--laps 8 --out bench/results/day_short.json``.
+check: ``--laps 8 --out bench/results/day_short.json``. bench/day_back_end.py replays a finished
+day's back end with other settings, in minutes.
 """
 
 from __future__ import annotations

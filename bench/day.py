@@ -142,21 +142,26 @@ def ape_by_lap(run_dir: Path, gt: np.ndarray, route: int, name: str = "trajector
     ``name="trajectory.tum", per_lap=True``, of the map's poses as the lap was driven (online), each
     lap after the SE(2) alignment that fits it best: the map's shape at that time of the day, which
     the final map cannot show (every lap is read on the same final map)."""
-    from neoslam_stream.evaluation.poses import umeyama_se2
     from neoslam_stream.tum import read_tum
 
     traj = read_tum(run_dir / name)
     frames = np.rint(traj[:, 0] * 10.0).astype(np.int64)  # stamps of a 10 Hz source
-    ref = gt[frames % route, :2]
-    lap = frames // route
+    return lap_ape(traj[:, 1:3], gt[frames % route, :2], frames // route, per_lap)
+
+
+def lap_ape(xy: np.ndarray, ref: np.ndarray, lap: np.ndarray, per_lap: bool) -> list[float]:
+    """Each lap's mean distance of ``xy`` to ``ref`` after one SE(2) alignment of them all, or
+    (``per_lap``) of that lap alone; ``lap`` numbers each row's lap from 0."""
+    from neoslam_stream.evaluation.poses import umeyama_se2
+
     out = []
     if not per_lap:
-        R, t = umeyama_se2(traj[:, 1:3], ref)
+        R, t = umeyama_se2(xy, ref)
     for k in range(int(lap.max()) + 1):
         m = lap == k
         if per_lap:
-            R, t = umeyama_se2(traj[m, 1:3], ref[m])
-        out.append(round(float(np.linalg.norm(traj[m, 1:3] @ R.T + t - ref[m], axis=1).mean()), 4))
+            R, t = umeyama_se2(xy[m], ref[m])
+        out.append(round(float(np.linalg.norm(xy[m] @ R.T + t - ref[m], axis=1).mean()), 4))
     return out
 
 

@@ -45,11 +45,10 @@ import yaml
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from day import APE_SLACK  # noqa: E402
+from day import APE_SLACK, lap_ape  # noqa: E402
 
 from neoslam_stream.algorithms.backend import BackEnd, BackEndConfig  # noqa: E402
 from neoslam_stream.algorithms.ratslam.experience_map import poses_on_map  # noqa: E402
-from neoslam_stream.evaluation.poses import umeyama_se2  # noqa: E402
 from neoslam_stream.nodes.ratslam import ExperienceMapNode, PoseCellsNode  # noqa: E402
 from neoslam_stream.runtime.checkpoint import export_map, load_state_file, save_state_file  # noqa: E402
 from neoslam_stream.sources.synthetic import SyntheticWorldSource  # noqa: E402
@@ -110,21 +109,19 @@ def replay(run_dir: str, settings: list[str], laps: int | None, states: bool = F
     be = BackEnd(BackEndConfig(**sections))
     em, bias = be.experience_map, be.pose_cells.bias
     n = len(tpl)
-    online = np.zeros((route, 2))
+    online = np.zeros((n, 2))
     first_lap = np.zeros((min(route, n), 3))
     local = np.zeros((n, 4))
     rows, t0, solve0 = [], time.perf_counter(), 0.0
     dt = 1.0 / rate_hz
     for i in range(n):
         p = be.step(int(tpl[i]), 0.0, *odo[i], stamp=i * dt)  # the source's stamps, to the bit
-        online[i % route] = p.pose[:2]
+        online[i] = p.pose[:2]
         local[i] = (p.exp_id, *p.local)
         if i < route:
             first_lap[i] = p.pose
         if i % route == route - 1:
-            R, t = umeyama_se2(online, gt[:, :2])
             rows.append({"lap": i // route + 1,
-                         "ape_online_m": round(float(np.linalg.norm(online @ R.T + t - gt[:, :2], axis=1).mean()), 4),
                          # the bias the odometry had over the lap (its mean), and the estimate at its end
                          "bias_true_rad_s": round(float(true_bias[i - route + 1:i + 1].mean()), 5),
                          "bias_estimate_rad_s": round(bias.bias, 5),
@@ -134,12 +131,10 @@ def replay(run_dir: str, settings: list[str], laps: int | None, states: bool = F
             solve0 = em.solve_s_total
             print(run_dir, settings, json.dumps(rows[-1]), flush=True)
     on_map = poses_on_map(em.node_poses(), local[:, 0].astype(np.int64), local[:, 1:])[:, :2]
-    ref = gt[np.arange(n) % route, :2]
-    R, t = umeyama_se2(on_map, ref)
-    err = np.linalg.norm(on_map @ R.T + t - ref, axis=1)
-    for r in rows:
-        k = r["lap"] - 1
-        r["ape_final_map_m"] = round(float(err[k * route:(k + 1) * route].mean()), 4)
+    ref, lap = gt[np.arange(n) % route, :2], np.arange(n) // route
+    # as day.py reads a run: each lap aligned alone online, one alignment of the whole on the final map
+    for r, on, fin in zip(rows, lap_ape(online, ref, lap, True), lap_ape(on_map, ref, lap, False), strict=False):
+        r["ape_online_m"], r["ape_final_map_m"] = on, fin
     out = {"settings": settings, "laps": rows, "first_lap_poses": first_lap, "frames": n}
     if states:
         pc = PoseCellsNode(**sections["pose_cells"])

@@ -12,6 +12,7 @@ another version, or without one (written before files had one), is refused with 
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
@@ -171,8 +172,6 @@ def _check_final_states(run_dir: Path, states: dict[str, Any], origin: str) -> N
     report's ``stopped_by_force``) had not written them yet (no ``state/<worker>.saved``): packed
     as they are, the map would lack that worker's stages, and a later session would start them
     afresh beside the others' learned state. Raises ValueError naming them."""
-    import json
-
     if Path(origin) != run_dir / "state":
         return
     try:
@@ -192,8 +191,6 @@ def _check_final_states(run_dir: Path, states: dict[str, Any], origin: str) -> N
 def export_map(run_dir: str | Path, out: str | Path) -> dict[str, Any]:
     """Pack a run's learned state (templates, TM connections, intervals, pose cells, experience
     map) into one portable file (msgpack, no pickle) for ``neoslam run --map``."""
-    import json
-
     states, origin = run_states(run_dir)
     _check_final_states(Path(run_dir), states, origin)
     cfg_path = Path(run_dir) / "config.yaml"

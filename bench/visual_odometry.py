@@ -12,7 +12,11 @@ loop closures, and the path length VO integrated against the true one. Variants:
   ``rotation: openratslam``, ``camera_fov_deg`` 50): what ``odometry: visual`` gave before;
 * ``visual_openratslam_fov90``: the same with the camera's field of view (90 degrees);
 * ``visual_platform_scale``: and the translation scaled by the platform's typical speed;
-* ``visual_default``: the default's VO (``scale: platform``, ``rotation: pinhole_centre``, 90 degrees).
+* ``visual_pinhole_centre``: and the rotation read from the image's centre as a pinhole camera's
+  (``rotation: pinhole_centre``);
+* ``visual_default``: the default's VO, which adds a fraction of a column to the rotation's shift
+  (``subpixel``), checks the centre's turn against the whole window (``rotation_check``) and reads
+  the translation as normal flow (``translation: normal_flow``).
 
 Run: ``.venv/bin/python bench/visual_odometry.py [--frames N] [--variants a,b] [--out FILE]``.
 """
@@ -39,13 +43,16 @@ from neoslam_stream.sources.synthetic import SyntheticWorldSource  # noqa: E402
 from neoslam_stream.tum import write_tum  # noqa: E402
 
 #: the reference code's VO (what ``odometry: visual`` gave before the default's VO section)
-OPENRATSLAM = {"scale": "fixed", "rotation": "openratslam", "camera_fov_deg": 50}
+OPENRATSLAM = {"scale": "fixed", "rotation": "openratslam", "camera_fov_deg": 50, "subpixel": False,
+               "rotation_check": False, "translation": "difference"}
 VARIANTS = {
     "wheel": {},
     "visual_openratslam": {"odometry": "visual", "visual_odometry": OPENRATSLAM},
     "visual_openratslam_fov90": {"odometry": "visual", "visual_odometry": {**OPENRATSLAM, "camera_fov_deg": 90}},
     "visual_platform_scale": {"odometry": "visual", "visual_odometry": {**OPENRATSLAM, "scale": "platform",
                                                                        "camera_fov_deg": 90}},
+    "visual_pinhole_centre": {"odometry": "visual", "visual_odometry": {
+        **OPENRATSLAM, "scale": "platform", "rotation": "pinhole_centre", "camera_fov_deg": 90}},
     "visual_default": {"odometry": "visual"},
 }
 

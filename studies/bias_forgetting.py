@@ -135,15 +135,16 @@ def choose(valid: dict[str, dict[str, dict[str, float]]]) -> dict[str, Any]:
     return {"rule": RULE, "scores": scores, "eligible": eligible, "forget_s": float(chosen)}
 
 
-def validate_then_report(res: dict[str, Any], rows: Any, rule: Any, out: str) -> None:
+def validate_then_report(res: dict[str, Any], rows: Any, rule: Any, out: str,
+                         validation: tuple[str, ...] = VALIDATION, test: tuple[str, ...] = TEST) -> None:
     """The protocol: ``rows(part)`` on every validation part, ``rule`` over them (the choice), then
     the held-out parts, all written to ``out`` with what ``res`` already holds."""
     res.update({"validation": {}, "test": {}})
-    for part in VALIDATION:
+    for part in validation:
         res["validation"][part] = rows(part)
     res["choice"] = rule(res["validation"])
     print("choice", json.dumps(res["choice"]), flush=True)
-    for part in TEST:
+    for part in test:
         res["test"][part] = rows(part)
     Path(out).write_text(json.dumps(res, indent=1))
     print(f"wrote {out}")

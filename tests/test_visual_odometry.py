@@ -147,3 +147,77 @@ def test_state_keeps_the_profiles_and_the_raw_speeds():
     again = VisualOdometry(scale="platform", speed_mps=0.5)
     again.load_state_dict(vo.state_dict())
     assert again.on_image(img + 153, 0.1) == vo.on_image(img + 153, 0.1)
+
+
+def test_subpixel_reads_a_turn_of_a_fraction_of_a_column_closer_than_the_whole_columns():
+    # 200 columns at 90 degrees (f = 100 px): a turn of 0.024 rad moves the centre by f tan(0.024)
+    # = 2.4 columns; whole columns read 2, the refined shift lies between 2 and 2.5 and nearer 2.4
+    before, after = _pinhole_view(0.0), _pinhole_view(0.024)
+    rates = {}
+    for sub in (False, True):
+        vo = VisualOdometry(camera_fov_deg=90, rotation="pinhole_centre", subpixel=sub)
+        vo.on_image(before, 0.1)
+        rates[sub] = vo.on_image(after, 0.1)[1] * 0.1
+    assert rates[False] == pytest.approx(math.atan(2 / 100))
+    shift = 100 * math.tan(rates[True])
+    assert 2.0 < shift <= 2.5 and abs(shift - 2.4) < abs(2.0 - 2.4)
+
+
+def test_refined_shift_stays_within_half_a_column_and_keeps_the_edge_of_the_search():
+    from neoslam_stream.algorithms.ratslam.visual_odometry import refined_shift
+
+    # a V-shaped difference (a ramp shifted by 2.4 columns): the parabola through 1.4, 0.4, 0.6
+    # (times the slope) has its vertex at 2 + 0.5 * (1.4 - 0.6) / 1.2 = 2.333
+    prev = np.linspace(0.0, 1.0, 101)[:-10]
+    cur = np.interp(np.arange(prev.size) - 2.4, np.arange(prev.size), prev)
+    assert refined_shift(cur[5:], prev[5:], 2) == pytest.approx(2 + 0.5 * 0.8 / 1.2, abs=1e-6)
+    assert refined_shift(cur, prev, 39) == 39.0  # the last offset tried has no neighbour beyond it
+
+
+def _centre_moved(width: int = 210, shift: int = 10) -> tuple[np.ndarray, np.ndarray]:
+    """Two frames whose sides are the same and whose middle third moved by ``shift`` columns: what
+    driving at a wall of repeated texture looks like to the centre (it matches a period away)."""
+    rng = np.random.default_rng(3)
+    row = rng.integers(30, 220, width + 2 * shift).astype(np.uint8)
+    a = row[shift:shift + width].copy()
+    b = a.copy()
+    third = width // 3
+    b[third:2 * third] = row[third:2 * third]  # the centre's content, shifted by `shift` columns
+    return np.tile(a[None], (10, 1)), np.tile(b[None], (10, 1))
+
+
+def test_rotation_check_refuses_a_centre_shift_the_whole_window_does_not_bear_out():
+    before, after = _centre_moved()
+    reads = {}
+    for check in (False, True):
+        vo = VisualOdometry(camera_fov_deg=90, rotation="pinhole_centre", rotation_check=check)
+        vo.on_image(before, 0.1)
+        reads[check] = vo.on_image(after, 0.1)[1]
+    focal = 105 / math.tan(math.radians(45))  # 210 columns at 90 degrees
+    assert reads[False] == pytest.approx(math.atan(10 / focal) / 0.1)  # the centre alone: a turn
+    assert reads[True] == 0.0  # the sides stayed put: no turn
+    # a real turn moves every column: the check keeps it
+    vo = VisualOdometry(camera_fov_deg=90, rotation="pinhole_centre", rotation_check=True)
+    vo.on_image(_pinhole_view(0.0), 0.1)
+    assert vo.on_image(_pinhole_view(0.05), 0.1)[1] == pytest.approx(math.atan(5 / 100) / 0.1)
+
+
+def test_normal_flow_is_the_difference_over_the_profiles_contrast():
+    # a textured row, then every column 25 levels brighter: no turn explains it, the difference is
+    # 25/255, the flow that over the mean absolute gradient of the two profiles (alike: the same
+    # texture), times vtrans_scaling 10 over camera_hz 10 * dt 0.1
+    row = np.random.default_rng(5).integers(0, 200, 90).astype(np.uint8)
+    prev = np.tile(row[None], (4, 1))
+    contrast = np.abs(np.diff(row / 255.0)).mean()
+    reads = {}
+    for translation in ("difference", "normal_flow"):
+        vo = VisualOdometry(camera_fov_deg=90, rotation="pinhole_centre", translation=translation,
+                            vtrans_scaling=10.0)
+        vo.on_image(prev, 0.1)
+        reads[translation] = vo.on_image(prev + 25, 0.1)[0]
+    assert reads["difference"] == pytest.approx(25 / 255 * 10 / (10 * 0.1))
+    assert reads["normal_flow"] == pytest.approx(25 / 255 / contrast * 10 / (10 * 0.1))
+    # a flat image has no contrast to read motion from: no speed rather than a division by zero
+    vo = VisualOdometry(translation="normal_flow")
+    vo.on_image(np.full((4, 60), 20, np.uint8), 0.1)
+    assert vo.on_image(np.full((4, 60), 40, np.uint8), 0.1)[0] == 0.0

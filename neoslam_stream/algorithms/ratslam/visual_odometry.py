@@ -24,6 +24,20 @@ to f tan(atan(u / f) + angle), and OpenRatSLAM's best shift, which moves every c
 difference that reads as driving (on the default route a turn on the spot read 1.6 times the straight
 speed, a corner 1.6 times; undone, 0.5 and 1.0 times).
 
+Three readings of the same profiles go beyond the C++ (each off in OpenRatSLAM's settings, on in the
+default; studies/visual_odometry_choices.py chose them):
+
+* ``subpixel``: the rotation's best shift refined by the parabola through the differences at its
+  neighbours (:func:`refined_shift`). A whole-column shift reads a turn slower than a column a frame
+  as none, which integrates into a heading error on every gentle curve.
+* ``rotation_check`` (``pinhole_centre``): the centre's shift stands only if, undone over the
+  translation window, it leaves a smaller difference than no rotation. Driving at a wall of repeated
+  texture, the looming centre matches best a whole period away (0.15 rad in one frame) while the
+  sides stay put; a real turn moves every column.
+* ``translation: normal_flow``: the difference over the two profiles' mean absolute gradient. A
+  column whose brightness changes by d where the profile's slope is g has moved about d / g columns
+  (the normal flow of a 1-D image), so a contrasted wall no longer reads faster than a pale one.
+
 ``scale: platform`` calibrates the translation online instead of by ``vtrans_scaling`` (a number
 that holds for one camera and one scene only): the profile difference per second r is VO's raw
 speed, and the robot's typical speed is what its typical raw speed means, so
@@ -72,6 +86,14 @@ class VisualOdometryConfig(BaseModel):
     #: openratslam: vrot = shift * camera_fov_deg / width over the whole window; pinhole_centre: the
     #: window's middle third, a shift read as a pinhole camera's angle atan(shift / focal length)
     rotation: Literal["openratslam", "pinhole_centre"] = "openratslam"
+    #: the rotation's best shift refined to a fraction of a column (parabola through its neighbours)
+    subpixel: bool = False
+    #: pinhole_centre: the centre's shift stands only if, undone over the translation window, it
+    #: explains the frame better than no rotation
+    rotation_check: bool = False
+    #: difference: the profiles' mean absolute difference is the raw speed (OpenRatSLAM);
+    #: normal_flow: that difference over the profiles' mean absolute gradient, columns moved
+    translation: Literal["difference", "normal_flow"] = "difference"
 
 
 class TypicalSpeedScale:
@@ -111,6 +133,14 @@ def profile(img: np.ndarray, x0: int, x1: int, y0: int, y1: int) -> np.ndarray:
     return win.sum(axis=0) / scale / win.shape[0]
 
 
+def shift_difference(cur: np.ndarray, prev: np.ndarray, off: int) -> float:
+    """Mean |cur[k + off] - prev[k]| over the columns both profiles cover."""
+    n = cur.size
+    if off >= 0:
+        return float(np.abs(cur[off:] - prev[: n - off]).sum() / (n - off))
+    return float(np.abs(cur[: n + off] - prev[-off:]).sum() / (n + off))
+
+
 def best_shift(cur: np.ndarray, prev: np.ndarray, slen: int = SLEN) -> tuple[int, float]:
     """(offset, mean abs difference) minimising the difference; offset > 0: cur[k+off] ~ prev[k].
 
@@ -120,13 +150,25 @@ def best_shift(cur: np.ndarray, prev: np.ndarray, slen: int = SLEN) -> tuple[int
     n = cur.size
     if prev.size != n:
         raise InvalidInput(f"profiles differ in length: {n} and {prev.size}")
-    offs = np.arange(min(slen, n - 1) if n > 1 else 1)
-    neg = np.array([np.abs(cur[: n - o] - prev[o:]).sum() / (n - o) for o in offs])
-    pos = np.array([np.abs(cur[o:] - prev[: n - o]).sum() / (n - o) for o in offs])
-    diffs = np.concatenate([neg, pos])
+    offs = range(min(slen, n - 1) if n > 1 else 1)
+    offsets = [-o for o in offs] + list(offs)
+    diffs = np.array([shift_difference(cur, prev, o) for o in offsets])
     k = int(np.argmin(diffs))
-    off = -int(offs[k]) if k < offs.size else int(offs[k - offs.size])
-    return off, float(diffs[k])
+    return offsets[k], float(diffs[k])
+
+
+def refined_shift(cur: np.ndarray, prev: np.ndarray, off: int, slen: int = SLEN) -> float:
+    """``off`` refined to a fraction of a column: the vertex of the parabola through the differences
+    at off - 1, off, off + 1, at most half a column away (``off`` itself at the search's edge or where
+    the three do not curve upwards). An integer shift reads a turn slower than a column a frame as
+    none at all, and a steady one in whole-column steps."""
+    if abs(off) + 1 >= min(slen, cur.size - 1):
+        return float(off)
+    below, at, above = (shift_difference(cur, prev, o) for o in (off - 1, off, off + 1))
+    curve = below - 2.0 * at + above
+    if curve <= 0:
+        return float(off)
+    return off + min(0.5, max(-0.5, 0.5 * (below - above) / curve))
 
 
 def rotated_difference(cur: np.ndarray, prev: np.ndarray, x0: int, width: int, focal: float, angle: float) -> float:
@@ -178,13 +220,16 @@ class VisualOdometry:
         if self.prev_trans is None or self.prev_trans.shape != pt.shape or self.prev_rot.shape != pr.shape:
             self.prev_trans, self.prev_rot = pt, pr
             return None
-        roff, _ = best_shift(pr, self.prev_rot)
+        best, _ = best_shift(pr, self.prev_rot)
+        roff: float = refined_shift(pr, self.prev_rot, best) if c.subpixel else best
         if c.rotation == "pinhole_centre":
             focal = g.shape[1] / 2 / math.tan(math.radians(c.camera_fov_deg) / 2)
-            tdiff = rotated_difference(pt, self.prev_trans, c.vtrans_image_x_min, g.shape[1], focal,
-                                       math.atan2(roff, focal))
+            roff, tdiff = self._pinhole_rotation(pt, pr, g.shape[1], focal, best, roff)
         else:
             _, tdiff = best_shift(pt, self.prev_trans)
+        if c.translation == "normal_flow":  # columns moved: the difference over the profiles' contrast
+            contrast = 0.5 * (np.abs(np.diff(pt)).mean() + np.abs(np.diff(self.prev_trans)).mean())
+            tdiff = tdiff / contrast if contrast > 0 else 0.0
         self.prev_trans, self.prev_rot = pt, pr
         if c.openratslam_compat or not dt:
             vrot = roff * c.camera_fov_deg / g.shape[1] * c.camera_hz * math.pi / 180.0
@@ -197,6 +242,21 @@ class VisualOdometry:
         if self.speed_scale is not None:  # the raw speed: the difference per second
             vtrans = self.speed_scale(tdiff * (c.camera_hz if c.openratslam_compat or not dt else 1.0 / dt))
         return min(vtrans, c.vtrans_max), vrot
+
+    def _pinhole_rotation(self, pt: np.ndarray, pr: np.ndarray, width: int, focal: float, best: int,
+                          roff: float) -> tuple[float, float]:
+        """(the centre's shift, the translation window's difference with its rotation undone). With
+        ``rotation_check`` a shift of the centre that the whole window does not bear out is no turn:
+        driving at a wall of repeated texture, the centre matches a whole period away while the
+        sides stay put."""
+        x0 = self.config.vtrans_image_x_min
+        tdiff = rotated_difference(pt, self.prev_trans, x0, width, focal, math.atan2(roff, focal))
+        if self.config.rotation_check and best != 0:
+            still = refined_shift(pr, self.prev_rot, 0) if self.config.subpixel else 0.0
+            tstill = rotated_difference(pt, self.prev_trans, x0, width, focal, math.atan2(still, focal))
+            if tstill < tdiff:
+                return still, tstill
+        return roff, tdiff
 
     def state_dict(self) -> dict[str, Any]:
         """The previous frame's profiles and the raw speeds seen (``scale: platform``)."""

@@ -221,3 +221,25 @@ def test_normal_flow_is_the_difference_over_the_profiles_contrast():
     vo = VisualOdometry(translation="normal_flow")
     vo.on_image(np.full((4, 60), 20, np.uint8), 0.1)
     assert vo.on_image(np.full((4, 60), 40, np.uint8), 0.1)[0] == 0.0
+
+
+def test_the_typical_speed_keeps_a_fixed_memory_beyond_its_exact_samples(monkeypatch):
+    from neoslam_stream.algorithms.ratslam.visual_odometry import TypicalSpeedScale
+
+    monkeypatch.setattr(TypicalSpeedScale, "EXACT", 100)
+    raws = np.random.default_rng(4).uniform(1.0, 3.0, 1000)
+    s = TypicalSpeedScale(0.3)
+    for r in raws[:100]:
+        s(r)
+    assert s.median == pytest.approx(np.median(raws[:100]))  # exact while few
+    out = [s(r) for r in raws[100:]]
+    assert s.samples == [] and len(s.histogram) == 1000  # the histogram holds them all
+    width = 10 ** (1 / 1000)
+    assert np.percentile(raws, 50, method="lower") / width <= s.median <= np.percentile(raws, 50, method="higher") * width
+    assert out[-1] == pytest.approx(0.3 * raws[-1] / s.median)
+    # the state carries the histogram
+    vo = VisualOdometry(scale="platform", speed_mps=0.3)
+    vo.speed_scale = s
+    again = VisualOdometry(scale="platform", speed_mps=0.3)
+    again.load_state_dict(vo.state_dict())
+    assert again.speed_scale.median == s.median and len(again.speed_scale.histogram) == 1000

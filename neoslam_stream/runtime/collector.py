@@ -15,6 +15,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from ..tallies import FrameRanges, LogHistogram
 from .messages import MessageError, decode
 
 log = logging.getLogger("neoslam.monitor")
@@ -181,12 +182,12 @@ class StatsCollector:
 
 @dataclass
 class FinalTracker:
-    """Frames that reached the final topic, with their end-to-end latency."""
+    """Frames that reached the final topic, with their end-to-end latency (in memory that does not
+    grow with the run: tallies.py)."""
 
     entry_stages: set[str] = field(default_factory=set)
-    frames: set[int] = field(default_factory=set)
-    latencies: list[float] = field(default_factory=list)
-    arrivals: list[float] = field(default_factory=list)
+    frames: FrameRanges = field(default_factory=FrameRanges)
+    latencies: LogHistogram = field(default_factory=LogHistogram)
     messages: int = 0
     lock: threading.Lock = field(default_factory=threading.Lock)
     #: a refused message was logged (once: a stream of them must not flood the log)
@@ -213,9 +214,8 @@ class FinalTracker:
             if frame in self.frames:
                 return
             self.frames.add(frame)
-            self.arrivals.append(now)
             if trace:
-                self.latencies.append(now - trace[0][1])
+                self.latencies.add(now - trace[0][1])
             if self.on_frame is not None:
                 self.on_frame(frame, trace)
 

@@ -22,10 +22,6 @@ from .collector import FinalTracker, _add_maps
 log = logging.getLogger("neoslam.monitor")
 
 
-def _pct(values: list[float], q: float) -> float:
-    return float(np.percentile(np.asarray(values), q)) if values else 0.0
-
-
 def build_report(stats: dict[str, dict[str, Any]], final: FinalTracker,
                  workers: dict[str, list[str]], meta: dict[str, Any]) -> dict[str, Any]:
     """All figures of a run, from the last stats of every stage and the final-topic tracker.
@@ -126,8 +122,8 @@ def build_report(stats: dict[str, dict[str, Any]], final: FinalTracker,
         "f_pipeline_predicted": f_pipeline if np.isfinite(f_pipeline) else None,
         "predicted_loss": (1.0 - min(1.0, f_pipeline / f_in)) if f_in > 0 and np.isfinite(f_pipeline) else None,
         "bottleneck": bottleneck, "bottleneck_tau_ms": tau_b,
-        "latency_p50_ms": _pct(final.latencies, 50) * 1e3,
-        "latency_p95_ms": _pct(final.latencies, 95) * 1e3,
+        "latency_p50_ms": final.latencies.percentile(50) * 1e3,
+        "latency_p95_ms": final.latencies.percentile(95) * 1e3,
         "errors": errors, "final_messages": final.messages,
         "source_errors": int(src.get("errors", 0)), "source_error_causes": src.get("error_causes", {}),
         "source": src.get("info", {}),

@@ -31,7 +31,7 @@ from .collector import FinalTracker, StatsCollector, union_ranges
 from .files import write_atomic
 from .hostlink import HostLink
 from .layout import RunLayout
-from .loss import loss_by_cause, to_ranges, useful_stages
+from .loss import loss_by_cause, useful_stages
 from .plan import RunError
 from .procs import source_entry, worker_entry
 
@@ -257,7 +257,7 @@ class ShareRecovery:
             state = {"raw": c.raw, "earlier": c.earlier, "lives": c.lives, "spans": c.spans}
             state = json.loads(json.dumps(state, default=str))
         with self.final.lock:
-            final = to_ranges(self.final.frames)
+            final = self.final.frames.ranges()
         state.update({"final": final, "outages": self.link.all_outages(), "rollbacks": self.rollbacks,
                       "restart_events": self.children.restart_events})
         state = {"format": STATE_FORMAT, "version": STATE_VERSION, **state}
@@ -283,7 +283,7 @@ class ShareRecovery:
             c.lives, c.spans = state["lives"], state["spans"]
         with self.final.lock:
             for a, b in state["final"]:
-                self.final.frames.update(range(a, b + 1))
+                self.final.frames.add_range(a, b)
         self.rollbacks = list(state["rollbacks"])
         self.children.restart_events = list(state["restart_events"])
         self._earlier_outages = list(state["outages"])
@@ -305,7 +305,7 @@ class ShareRecovery:
         src = stats.get("source", {})
         outages = self.outages()
         with self.final.lock:
-            final = set(self.final.frames)
+            final = self.final.frames.copy()
         spans = {k: list(v) for k, v in self.collector.spans.items()}
         loss = loss_by_cause(src, final, stats, spans, outages, int(report.get("frames_strided") or 0),
                              useful_stages(stats, layout.plan.final_topic))

@@ -55,6 +55,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from ...tallies import LogHistogram
 from .._config import make_config
 from ..errors import InvalidInput
 
@@ -98,22 +99,38 @@ class VisualOdometryConfig(BaseModel):
 
 class TypicalSpeedScale:
     """VO's raw speed r (any unit per second) -> m/s: ``speed_mps`` * r / the median of every r so
-    far, this one included (0 while that median is 0: nothing has moved yet)."""
+    far, this one included (0 while that median is 0: nothing has moved yet). Beyond ``EXACT``
+    samples they move into a :class:`~neoslam_stream.tallies.LogHistogram` whose median lies
+    within 0.12 % of theirs, so that a camera running all day keeps a fixed memory here."""
+
+    #: samples kept exactly, sorted (about 17 minutes at 10 Hz)
+    EXACT = 10_000
 
     def __init__(self, speed_mps: float) -> None:
         if not (math.isfinite(speed_mps) and speed_mps > 0):
             raise InvalidInput(f"the typical speed must be a positive number, got {speed_mps}")
         self.speed_mps = speed_mps
-        #: every raw speed seen, sorted
+        #: every raw speed seen, sorted (until there are more than EXACT; then in ``histogram``)
         self.samples: list[float] = []
+        self.histogram: LogHistogram | None = None
 
     @property
     def median(self) -> float:
+        if self.histogram is not None:
+            return self.histogram.percentile(50)
         s, n = self.samples, len(self.samples)
         return 0.0 if n == 0 else 0.5 * (s[(n - 1) // 2] + s[n // 2])
 
     def __call__(self, raw: float) -> float:
-        insort(self.samples, raw)
+        if self.histogram is not None:
+            self.histogram.add(raw)
+        else:
+            insort(self.samples, raw)
+            if len(self.samples) > self.EXACT:
+                self.histogram = LogHistogram()
+                for v in self.samples:
+                    self.histogram.add(v)
+                self.samples = []
         m = self.median
         return self.speed_mps * raw / m if m > 0 else 0.0
 
@@ -259,14 +276,22 @@ class VisualOdometry:
         return roff, tdiff
 
     def state_dict(self) -> dict[str, Any]:
-        """The previous frame's profiles and the raw speeds seen (``scale: platform``)."""
+        """The previous frame's profiles and the raw speeds seen (``scale: platform``): the sorted
+        samples, or their histogram's counts once there were too many."""
         empty = np.zeros(0)
+        scale = self.speed_scale
+        hist = scale.histogram.state() if scale is not None and scale.histogram is not None else None
         return {"prev_trans": empty if self.prev_trans is None else self.prev_trans,
                 "prev_rot": empty if self.prev_rot is None else self.prev_rot,
-                "speeds": np.asarray(self.speed_scale.samples if self.speed_scale else [], dtype=np.float64)}
+                "speeds": np.asarray(scale.samples if scale else [], dtype=np.float64),
+                **({"speed_counts": hist["counts"], "speeds_below": hist["below"]} if hist else {})}
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
         trans, rot = np.asarray(st["prev_trans"], np.float64), np.asarray(st["prev_rot"], np.float64)
         self.prev_trans, self.prev_rot = (trans.copy(), rot.copy()) if trans.size else (None, None)
         if self.speed_scale is not None:
             self.speed_scale.samples = sorted(float(v) for v in np.asarray(st["speeds"]).reshape(-1))
+            self.speed_scale.histogram = None
+            if "speed_counts" in st:
+                self.speed_scale.histogram = LogHistogram()
+                self.speed_scale.histogram.load({"counts": st["speed_counts"], "below": st["speeds_below"]})

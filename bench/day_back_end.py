@@ -22,6 +22,10 @@ and map (bench/results/day_runs/back_end_<variant>.neoslam, outside git): the ma
 would have left, for ``neoslam run --map``; the variant replaying the run's own back end must end
 with the pose cells the run saved (``reproduces_run_end``).
 
+``--odometry-seed N`` replays the variants with the odometry noise of seed N instead of the run's
+(the synthetic source's ``odom_seed``): the same templates and route, another draw of the bias's
+random walk, a day to choose a setting on without touching the day it is reported on.
+
 Run: ``.venv/bin/python bench/day_back_end.py --run bench/results/day_runs/day
 --as-recorded pose_cells.odometry_bias.reference=first --variant
 first:pose_cells.odometry_bias.reference=first --variant latest:pose_cells.odometry_bias.reference=latest``
@@ -69,14 +73,17 @@ def back_end_config(run_dir: Path, settings: list[str]) -> dict[str, Any]:
     return out
 
 
-def route_input(run_dir: Path, laps: int | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int, float]:
+def route_input(run_dir: Path, laps: int | None, odom_seed: int | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int, float]:
     """Per frame: template id, (vtrans, vrot, dt), the true yaw-rate bias; the route's ground truth,
-    its length in frames and its frame rate."""
+    its length in frames and its frame rate. ``odom_seed``: the odometry of another seed than the
+    run's (the same templates: a day the front end saw alike, driven with other odometry noise)."""
     cfg = yaml.safe_load((run_dir / "config.yaml").read_text())
     if cfg["source"]["kind"] != "synthetic":
         raise SystemExit(f"{run_dir}: a synthetic route's run is needed (its odometry is recomputed), "
                          f"not {cfg['source']['kind']!r}")
-    src = SyntheticWorldSource(**{**cfg["source"]["params"], "width": 8, "height": 8})
+    params = {**cfg["source"]["params"], "width": 8, "height": 8}
+    src = SyntheticWorldSource(**params, **({"odom_seed": odom_seed} if odom_seed is not None else {}))
     route = src.route_len
     rows = None if laps is None else laps * route
     tpl = np.loadtxt(run_dir / "templates.csv", delimiter=",", skiprows=1, usecols=(0, 2), max_rows=rows,
@@ -100,11 +107,12 @@ def _true_yaw_rate(src: SyntheticWorldSource, n: int) -> np.ndarray:
     return out
 
 
-def replay(run_dir: str, settings: list[str], laps: int | None, states: bool = False) -> dict[str, Any]:
+def replay(run_dir: str, settings: list[str], laps: int | None, states: bool = False,
+           odom_seed: int | None = None) -> dict[str, Any]:
     """One variant over the day's input: per-lap rows, the per-frame online poses of lap 1 and,
     with ``states``, the pose-cell and experience-map nodes' states at the end (what the run's
-    workers would have saved)."""
-    tpl, odo, true_bias, gt, route, rate_hz = route_input(Path(run_dir), laps)
+    workers would have saved); ``odom_seed``: route_input's."""
+    tpl, odo, true_bias, gt, route, rate_hz = route_input(Path(run_dir), laps, odom_seed)
     sections = back_end_config(Path(run_dir), settings)
     be = BackEnd(BackEndConfig(**sections))
     em, bias = be.experience_map, be.pose_cells.bias
@@ -223,26 +231,30 @@ def main() -> None:
                     help="settings the run's code had without its config.yaml naming them (a field added "
                          "since): the replay of its own config, which must give its trajectory.tum, uses them")
     ap.add_argument("--laps", type=int, help="the first N laps only")
+    ap.add_argument("--odometry-seed", type=int,
+                    help="replay the variants with the odometry of this seed instead of the run's (the "
+                         "same templates, other odometry noise: days to choose a setting on)")
     ap.add_argument("--export", action="store_true",
                     help="also write bench/results/day_runs/back_end_<variant>.neoslam (outside git): the run's "
                          "front-end states with the variant's back end")
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "day_back_end.json"))
     args = ap.parse_args()
-    if args.export and args.laps is not None:
-        ap.error("--export packs the run's end: the whole run's back end is needed (leave out --laps)")
+    if args.export and (args.laps is not None or args.odometry_seed is not None):
+        ap.error("--export packs the run's end: the whole run's back end with its own odometry is needed "
+                 "(leave out --laps and --odometry-seed)")
     run_dir = Path(args.run)
     variants = {}
     for v in args.variant:
         name, _, settings = v.partition(":")
         variants[name] = [s for s in settings.split(",") if s]
     with ProcessPoolExecutor(max_workers=max(1, len(variants))) as pool:
-        futures = {name: pool.submit(replay, str(run_dir), s, args.laps, args.export) for name, s in variants.items()}
+        futures = {name: pool.submit(replay, str(run_dir), s, args.laps, args.export, args.odometry_seed) for name, s in variants.items()}
         own = replay(str(run_dir), args.as_recorded, 1)["first_lap_poses"]  # one lap, beside the others
         done = {name: f.result() for name, f in futures.items()}
     recorded = read_tum(run_dir / "trajectory.tum")
     m = min(len(own), len(recorded))
     res: dict[str, Any] = {
-        "run": str(run_dir), "as_recorded": args.as_recorded,
+        "run": str(run_dir), "as_recorded": args.as_recorded, "odometry_seed": args.odometry_seed,
         "laps": len(next(iter(done.values()))["laps"]) if done else 0, "frames": 0,
         # the run's own config replayed gives its recorded online poses (trajectory.tum) on lap 1
         "reproduces_run": bool(np.allclose(own[:m, :2], recorded[:m, 1:3], atol=1e-6)),

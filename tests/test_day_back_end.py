@@ -64,6 +64,21 @@ def test_the_replay_gives_the_runs_poses_and_reads_each_lap(tmp_path):
     assert res["laps"][1]["bias_true_rad_s"] == pytest.approx(expected[route:2 * route].mean(), abs=1e-5)
 
 
+def test_another_odometry_seed_keeps_the_templates_and_redraws_the_noise(tmp_path):
+    run, _ = _fake_run(tmp_path, laps=2)
+    tpl, odo, bias, *_ = day_back_end.route_input(run, None)
+    tpl7, odo7, bias7, *_ = day_back_end.route_input(run, None, odom_seed=7)
+    np.testing.assert_array_equal(tpl7, tpl)
+    # the same true motion: the odometry differs by its noise only, drawn from seed 7
+    noise = np.random.default_rng(7).normal(0.0, 1.0, (len(odo), 3))
+    cfg = SyntheticWorldSource(**PARAMS).config
+    walk = np.cumsum(noise[:, 0] * cfg.odom_noise * cfg.odom_walk)
+    np.testing.assert_allclose(bias7[1:], (cfg.odom_yaw_bias + walk + cfg.odom_noise * noise[:, 2])[1:], atol=1e-9)
+    assert not np.allclose(bias7[1:], bias[1:])
+    # the run's own seed named explicitly is the run's odometry
+    np.testing.assert_array_equal(day_back_end.route_input(run, None, odom_seed=PARAMS["seed"] + 1)[1], odo)
+
+
 def test_a_setting_changes_only_the_replay_it_names(tmp_path):
     run, _ = _fake_run(tmp_path, laps=1)
     cfg = day_back_end.back_end_config(run, ["pose_cells.odometry_bias.reference=first",

@@ -229,6 +229,8 @@ class SyntheticConfig(BaseModel):
     odom_noise: float = Field(0.01, ge=0)
     #: standard deviation of the yaw-rate bias random walk per frame, as a fraction of odom_noise
     odom_walk: float = Field(0.1, ge=0)
+    #: the odometry noise's seed (None: seed + 1): the same images with another odometry
+    odom_seed: int | None = None
 
     @model_validator(mode="after")
     def _one_lap(self) -> SyntheticConfig:
@@ -305,9 +307,10 @@ class SyntheticWorldSource(Source):
     def odometry(self, n: int) -> np.ndarray:
         """(vtrans, vrot, dt) of the first ``n`` frames: the true motion since the previous frame
         with v' = v * scale * (1 + N(0, noise)) and w' = w + yaw_bias + b_k + N(0, noise), where the
-        bias b_k is a random walk. Seeded by ``seed + 1``, independent of the images."""
+        bias b_k is a random walk. Seeded by ``odom_seed`` (None: ``seed + 1``), independent of the
+        images."""
         cfg = self.config
-        rng = np.random.default_rng(cfg.seed + 1)
+        rng = np.random.default_rng(cfg.seed + 1 if cfg.odom_seed is None else cfg.odom_seed)
         dt = 1.0 / cfg.rate_hz
         k = np.arange(n) % self.route_len
         cur = self.gt[k]

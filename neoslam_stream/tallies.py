@@ -19,6 +19,7 @@ from __future__ import annotations
 import bisect
 import math
 from collections.abc import Iterable, Iterator
+from collections.abc import Set as AbcSet
 from typing import Any
 
 import numpy as np
@@ -83,6 +84,16 @@ class FrameRanges:
 
     def __len__(self) -> int:
         return self._count
+
+    def __eq__(self, other: object) -> bool:
+        """Equal to another FrameRanges, or to a set, holding the same frames."""
+        if isinstance(other, FrameRanges):
+            return self._starts == other._starts and self._ends == other._ends
+        if isinstance(other, AbcSet):
+            return len(other) == self._count and all(f in self for f in other)
+        return NotImplemented
+
+    __hash__ = None  # type: ignore[assignment]  # mutable, as a set
 
     def __iter__(self) -> Iterator[int]:
         for a, b in zip(self._starts, self._ends, strict=True):

@@ -24,8 +24,9 @@ def test_frame_ranges_is_a_set_of_frames():
     fr.add(69)
     assert fr.ranges() == [[0, 61], [69, 119]]
     copy = fr.copy()
+    assert copy == fr and fr == set(fr) and fr != set(fr) | {200} and fr != {0}
     copy.add(65)
-    assert 65 in copy and 65 not in fr
+    assert 65 in copy and 65 not in fr and copy != fr
 
 
 def test_an_hour_of_frames_in_order_is_one_range():

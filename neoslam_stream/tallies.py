@@ -109,8 +109,7 @@ class LogHistogram:
     LOW, HIGH, BINS_PER_DECADE = 1e-6, 1e3, 1000
 
     def __init__(self) -> None:
-        self.decades = math.log10(self.HIGH / self.LOW)
-        self.counts = np.zeros(round(self.decades * self.BINS_PER_DECADE), dtype=np.int64)
+        self.counts = np.zeros(round(math.log10(self.HIGH / self.LOW) * self.BINS_PER_DECADE), dtype=np.int64)
         #: values at or below LOW
         self.below = 0
         self.n = 0

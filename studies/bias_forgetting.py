@@ -49,6 +49,12 @@ RULE = (f"lowest mean online APE relative to {REFERENCE_S:g} s's over {', '.join
         f"scores within {TIE} tie, won by the longer forgetting")
 
 
+def template_input(t: dict[str, Any] | None) -> tuple[int | None, float]:
+    """What the back end takes of a step's template: its id (None: the frame has none) and its
+    relative rotation."""
+    return (None, 0.0) if t is None else (int(t["id"]), float(t.get("relative_rad", 0.0)))
+
+
 def front_end_stream(seed: int) -> list[tuple]:
     """The default's front end on synthetic world ``seed``, per frame: (template id or None,
     relative rotation, odometry, stamp, true x y), cached under a digest of the front end's
@@ -64,8 +70,7 @@ def front_end_stream(seed: int) -> list[tuple]:
     rows = []
     for f in SyntheticWorldSource(**cfg.source.params):
         t = slam.step(f.image, stamp=f.stamp, frame=f.frame).template
-        rows.append((None if t is None else int(t["id"]), float(t.get("relative_rad", 0.0)) if t else 0.0,
-                     tuple(f.odom), f.stamp, tuple(f.groundtruth[:2])))
+        rows.append((*template_input(t), tuple(f.odom), f.stamp, tuple(f.groundtruth[:2])))
         if f.frame % 500 == 0:
             print(f"  world {seed}: frame {f.frame}", flush=True)
     CACHE.mkdir(parents=True, exist_ok=True)

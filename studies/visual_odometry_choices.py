@@ -35,7 +35,7 @@ import _paths  # the package and bench/ on sys.path
 import cv2
 import numpy as np
 from bench_settings import cache_key
-from bias_forgetting import default_back_end, replay, validate_then_report
+from bias_forgetting import default_back_end, replay, template_input, validate_then_report
 
 from neoslam_stream.algorithms.backend import CameraOdometry
 from neoslam_stream.api import NeoSLAM, _image_data
@@ -97,7 +97,7 @@ def front_end_on_video(seed: int, video: Path) -> list[tuple[int | None, float, 
     rows = []
     for f in VideoSource(str(video)):
         t = slam.step(f.image, stamp=f.stamp, frame=f.frame).template
-        rows.append((None if t is None else int(t["id"]), float(t.get("relative_rad", 0.0)) if t else 0.0, f.stamp))
+        rows.append((*template_input(t), f.stamp))
     path.write_bytes(pickle.dumps(rows))
     return rows
 
@@ -157,8 +157,7 @@ def choose(valid: dict[str, dict[str, dict[str, float]]]) -> dict[str, Any]:
     kept, settings, verdicts = "before", dict(BEFORE), {}
     for name, change in STEPS.items():
         trial = {**settings, **change}
-        name_trial = name if trial == variants()[name] else None
-        if name_trial is None:  # a step left out changes what the later ones stand on: not replayed
+        if trial != variants()[name]:  # a step left out changes what the later ones stand on: not replayed
             verdicts[name] = "not tried: it stands on a step left out"
             continue
         ratios = {p: v[name]["final_map_m"] / v[kept]["final_map_m"] for p, v in valid.items()}

@@ -17,7 +17,10 @@ frames, and the precision-recall curve of sweeping a threshold over the best mat
   matches them (lower is more alike), and its decided closures as for D;
 * and a diagnostic, ``A_as_B``: A's features centred as B centres them (each frame less B's running
   mean at its own time), by cosine: B's input, so that A_as_B -> B is what B's projection and sLSBH
-  lose, A -> A_as_B what centring by the recent frames instead of the run's mean changes.
+  lose, A -> A_as_B what centring by the recent frames instead of the run's mean changes;
+* and ``B_sequence``: B's best matches given the evidence D's decision takes (a query scored only
+  when the best matches of the frames of the last sequence_m of travel follow on consistently, by
+  their mean score: recognition.py ``sequence_curve``), to set D's recall at precision 0.95 against.
 
 Queries and candidates (bench/streams.py ``recognition_truth``): on a two-traversal part (Nordland
 summer then winter, Gardens Point's reference walk then its query walk) the second traversal's frames
@@ -26,8 +29,9 @@ stand-ins) every frame against the frames at least REVISIT_TRAVEL_M of travel ea
 RADIUS_M with the same facing, recall over the revisiting frames. A's features are cached as
 bench/streams.py does ($NEOSLAM_CACHE). Writes bench/results/stages.json (per part and stage:
 recall_at_1, pr_area, recall_at_precision at 0.9, 0.95, 1.0, the curve in at most 50 points;
-``summary``: per part the recall@1 of each stage and whether B keeps A's, ``b_below_a``: the parts
-where it does not) and bench/results/
+``summary``: per part the recall@1 of each stage, whether B keeps A's and D's recall at precision
+0.95 B's, alone and with D's evidence; ``b_below_a``, ``d_below_b``, ``d_below_b_sequence``: the
+parts where it does not) and bench/results/
 stages.png (one panel per part). docs/mapping.md, "Reading bench/stages.py", says how to read them.
 Run: ``.venv/bin/python bench/stages.py [--parts nordland:0,gardens:hard:a,...] [--out FILE]``
 (the default: every part; about 9 minutes on 2 cores, 5.5 with A's features cached); ``--plot``
@@ -63,6 +67,7 @@ from neoslam_stream.evaluation.recognition import (  # noqa: E402
     figures,
     overlaps,
     ranking_curve,
+    sequence_curve,
     shortlisted,
 )
 
@@ -73,14 +78,14 @@ STAGES = ("A", "B", "C", "D", "local_view_templates", "local_view")
 #: sLSBH, so that A_as_B -> B is what the projection and binarisation lose, A -> A_as_B what the
 #: centring changes; and B's bits and C's cells alone, where B and C give descriptors that re-rank
 #: the bits' (cells') shortlist (``spatial_view.rerank``)
-DIAGNOSTICS = ("A_as_B", "B_bits", "C_cells")
+DIAGNOSTICS = ("A_as_B", "B_bits", "C_cells", "B_sequence")
 LABELS = {"A": "A features (centred cosine)", "A_as_B": "A centred as B centres (cosine)",
           "B": "B (bits shortlist, descriptor re-rank)", "C": "C (cells shortlist, descriptor re-rank)",
           "B_bits": "B bits alone (overlap)", "C_cells": "C cells alone (overlap)",
-          "D": "D decisions", "local_view_templates": "local view templates (error)",
-          "local_view": "local view decisions"}
+          "B_sequence": "B with D's evidence (a consistent stretch)", "D": "D decisions",
+          "local_view_templates": "local view templates (error)", "local_view": "local view decisions"}
 COLOURS = {"A": "tab:blue", "A_as_B": "tab:cyan", "B": "tab:orange", "C": "tab:green", "D": "tab:red",
-           "B_bits": "tab:brown", "C_cells": "tab:olive",
+           "B_bits": "tab:brown", "C_cells": "tab:olive", "B_sequence": "tab:purple",
            "local_view_templates": "tab:grey", "local_view": "black"}
 
 
@@ -188,10 +193,17 @@ def run_part(part: str) -> dict[str, Any]:
     if k and codes[0].descriptor is not None:
         # B's and C's output: the bits (cells) shortlist k candidates, the descriptors decide (as D does)
         fine = cosine(np.stack([c.descriptor for c in codes]).astype(np.float64))[ix]
-        curves["B"] = ranking_curve(shortlisted(b_overlaps, fine, allowed, k), allowed, right)
+        b_scores = shortlisted(b_overlaps, fine, allowed, k)
+        curves["B"] = ranking_curve(b_scores, allowed, right)
         curves["C"] = ranking_curve(shortlisted(c_overlaps, fine, allowed, k), allowed, right)
     else:
+        b_scores = b_overlaps
         curves["B"], curves["C"] = curves["B_bits"], curves["C_cells"]
+    # B given the evidence D decides on: the frames of the last sequence_m of travel consistent
+    cal = sv.calibration
+    curves["B_sequence"] = sequence_curve(b_scores, allowed, right, queries, candidates,
+                                          cal.sequence_frames, cal.max_step, cal.slack)
+    res["sequence_frames"] = cal.sequence_frames
     err = view_errors(np.asarray(templates), queries, candidates, allowed, cfg.local_view)
     curves["local_view_templates"] = ranking_curve(-err, allowed, right)
     qpos = {int(f): i for i, f in enumerate(queries)}
@@ -224,6 +236,12 @@ def summary(parts: dict[str, Any]) -> dict[str, Any]:
         row = {name: round(r[name]["recall_at_1"], 4) for name in STAGES + DIAGNOSTICS}
         row["b_keeps_a"] = r["B"]["recall_at_1"] >= r["A"]["recall_at_1"]
         row["b_keeps_a_as_b"] = r["B"]["recall_at_1"] >= r["A_as_B"]["recall_at_1"]
+        # D's recall at precision 0.95 against B's: alone, and with the evidence D takes
+        d95 = r["D"]["recall_at_precision"]["0.95"]
+        row["D_at_p95"], row["B_at_p95"] = round(d95, 4), round(r["B"]["recall_at_precision"]["0.95"], 4)
+        row["B_sequence_at_p95"] = round(r["B_sequence"]["recall_at_precision"]["0.95"], 4)
+        row["d_keeps_b"] = d95 >= r["B"]["recall_at_precision"]["0.95"]
+        row["d_keeps_b_sequence"] = d95 >= r["B_sequence"]["recall_at_precision"]["0.95"]
         out[part] = row
     return out
 
@@ -247,7 +265,8 @@ def plot(res: dict[str, Any], path: Path) -> bool:
         role = "validation" if part in G.PARTS["validation"] else "held out"
         for name in STAGES + DIAGNOSTICS:
             c = r[name]["curve"]
-            style = {"C": ":", "A_as_B": ":", "local_view_templates": "--", "local_view": "--"}.get(name, "-")
+            style = {"C": ":", "A_as_B": ":", "B_sequence": "-.", "local_view_templates": "--",
+                     "local_view": "--"}.get(name, "-")
             ax.plot(c["recall"], c["precision"], style, color=COLOURS[name], lw=1.8 if name == "C" else 1.2,
                     label=LABELS[name])
             if c["recall"]:  # recall@1: where the curve ends
@@ -263,10 +282,10 @@ def plot(res: dict[str, Any], path: Path) -> bool:
     for ax in axes[:, 0]:
         ax.set_ylabel("precision")
     handles, labels = axes.flat[0].get_legend_handles_labels()
-    top = 1 - 0.6 / fig.get_figheight()
+    top = 1 - 0.9 / fig.get_figheight()
     fig.suptitle("What each stage recognises: precision-recall of each query's best match, of each decision "
                  "(a dot: recall@1)", y=1 - 0.1 / fig.get_figheight(), fontsize=11)
-    fig.legend(handles, labels, loc="upper center", ncol=len(handles), fontsize=9, frameon=False,
+    fig.legend(handles, labels, loc="upper center", ncol=-(-len(handles) // 2), fontsize=9, frameon=False,
                bbox_to_anchor=(0.5, 1 - 0.3 / fig.get_figheight()))
     fig.tight_layout(rect=(0, 0, 1, top))
     fig.savefig(path, dpi=70)
@@ -307,6 +326,8 @@ def main() -> None:
     res["summary"] = summary(res["parts"])
     res["b_below_a"] = [p for p, s in res["summary"].items() if s.get("b_keeps_a") is False]
     res["b_below_a_as_b"] = [p for p, s in res["summary"].items() if s.get("b_keeps_a_as_b") is False]
+    res["d_below_b"] = [p for p, s in res["summary"].items() if s.get("d_keeps_b") is False]
+    res["d_below_b_sequence"] = [p for p, s in res["summary"].items() if s.get("d_keeps_b_sequence") is False]
     res["seconds"] = round(time.perf_counter() - t0, 1)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(dump(res))

@@ -44,8 +44,8 @@ def recorded(fe: FrontEnd) -> dict[int, dict[str, Any]]:
     last: dict[str, Any] = {}
     rows: dict[int, dict[str, Any]] = {}
 
-    def on_assess(scores: np.ndarray, times: np.ndarray, recent: float | None):
-        a = assess(scores, times, recent)
+    def on_assess(scores: np.ndarray, times: np.ndarray, recent: float | None, best: int | None = None):
+        a = assess(scores, times, recent, best)
         last["a"] = a
         return a
 

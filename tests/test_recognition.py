@@ -16,6 +16,7 @@ from neoslam_stream.evaluation.recognition import (
     overlaps,
     pr_curve,
     ranking_curve,
+    sequence_curve,
 )
 
 #: 4 queries x 3 candidates; the right candidates: q0 -> c0, q1 -> c0, q2 -> c2, q3 none
@@ -74,6 +75,34 @@ def test_a_decision_ends_at_its_recall():
     assert c.area() == pytest.approx(1 / 3 * 1 / 2)
     empty = decision_curve(np.zeros(4, bool), np.full(4, -1), np.zeros(4), RIGHT)
     assert empty.final_recall == 0.0 and empty.area() == 0.0 and empty.recall_at(0.9) == 0.0
+
+
+def test_a_ranking_with_the_decisions_evidence_worked_by_hand():
+    # query frames 10..14 against candidate frames 0..4; each query's best match by score:
+    # 10 -> c0, 11 -> c1, 12 -> c2, 13 -> c4 (a jump of 2), 14 -> c0 (back to the start)
+    queries, candidates = np.arange(10, 15), np.arange(5)
+    scores = np.full((5, 5), 0.1)
+    for q, (c, s) in enumerate([(0, 0.5), (1, 0.6), (2, 0.7), (4, 0.9), (0, 0.4)]):
+        scores[q, c] = s
+    right = np.zeros((5, 5), bool)
+    for q, c in enumerate([0, 1, 2, 3, 0]):  # 13's right place is c3: its best match c4 is wrong
+        right[q, c] = True
+    allowed = np.ones_like(right)
+    # length 0: every best match is scored by itself (the ranking's own curve)
+    alone = sequence_curve(scores, allowed, right, queries, candidates, 0, 1.0, 0)
+    direct = ranking_curve(scores, allowed, right)
+    assert alone.threshold.tolist() == direct.threshold.tolist()
+    assert alone.precision.tolist() == direct.precision.tolist()
+    # length 1, max_step 1, no slack: the frame before must lie within 1 of this frame's match.
+    # 10: frame 9 is no query -> never accepted; 11 (c1 after c0): mean(0.5, 0.6) = 0.55, right;
+    # 12 (c2 after c1): 0.65, right; 13 (c4 after c2, 2 apart): refused; 14 (c0 after c4): refused
+    seq = sequence_curve(scores, allowed, right, queries, candidates, 1, 1.0, 0)
+    assert seq.threshold == pytest.approx([0.65, 0.55])
+    assert seq.precision == pytest.approx([1, 1]) and seq.recall == pytest.approx([1 / 5, 2 / 5])
+    # a slack of 1 lets 13's jump through, a wrong match scored mean(0.7, 0.9) = 0.8, first
+    slack = sequence_curve(scores, allowed, right, queries, candidates, 1, 1.0, 1)
+    assert slack.threshold == pytest.approx([0.8, 0.65, 0.55])
+    assert slack.precision == pytest.approx([0, 1 / 2, 2 / 3])
 
 
 def test_the_downsampled_curve_keeps_its_ends():

@@ -12,7 +12,8 @@ and no score for the others, which are never accepted: its curve ends at the dec
 
 Scores: higher is more alike (negate an error). Representations: :func:`causal_centred_cosine`
 (A's features, the run's mean so far removed), :func:`cosine` (features centred by the caller) and
-:func:`overlaps` (|S_i & S_j| of index sets: B's bits, C's winner cells). Pure numpy.
+:func:`overlaps` (|S_i & S_j| of index sets: B's bits, C's winner cells). :func:`sequence_curve`
+gives a ranking the evidence D's decision takes: a stretch of consistent best matches.
 """
 
 from __future__ import annotations
@@ -22,6 +23,8 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+
+from ..algorithms.sequence import refs_consistent
 
 PRECISIONS = (0.9, 0.95, 1.0)
 
@@ -167,3 +170,26 @@ def decision_curve(decided: np.ndarray, matched: np.ndarray, scores: np.ndarray,
     hit = d & (m >= 0) & r[np.arange(len(m)), np.maximum(m, 0)]
     s = np.where(d, np.asarray(scores, dtype=np.float64), np.nan)
     return pr_curve(s, hit, int(r.any(axis=1).sum()))
+
+
+def sequence_curve(scores: np.ndarray, allowed: np.ndarray, right: np.ndarray, queries: np.ndarray,
+                   candidates: np.ndarray, length: int, max_step: float, slack: int) -> PRCurve:
+    """A ranking given the evidence D's decision takes (algorithms/calibration.py ``accept``): a
+    query is scored only when the ``length`` frames before it were queries whose best matches lie
+    consistently behind its own (:func:`~neoslam_stream.algorithms.sequence.refs_consistent`, on
+    candidate frames), by the mean of the ``length`` + 1 best scores; any other query is never
+    accepted. ``queries``, ``candidates``: the frame numbers of the rows and columns. With
+    ``length`` 0 it is :func:`ranking_curve`."""
+    best, score = best_matches(scores, allowed)
+    q = np.asarray(queries, dtype=np.int64)
+    c = np.asarray(candidates, dtype=np.int64)
+    refs = {int(f): (int(c[b]) if b >= 0 else -1) for f, b in zip(q, best, strict=True)}
+    by_frame = {int(f): s for f, s in zip(q, score, strict=True)}
+    evidence = np.full(len(q), np.nan)
+    for i, f in enumerate(map(int, q)):
+        if best[i] < 0 or not refs_consistent(refs, f, refs[f], length, max_step, slack):
+            continue
+        evidence[i] = float(np.mean([by_frame[f - k] for k in range(length + 1)]))
+    r = np.asarray(right, bool)
+    hit = (best >= 0) & r[np.arange(len(best)), np.maximum(best, 0)]
+    return pr_curve(evidence, hit, int(r.any(axis=1).sum()))

@@ -173,9 +173,10 @@ def export_with(run_dir: Path, states: dict[str, dict[str, Any]], frames: int, o
 
 
 def _same(a: Any, b: Any) -> bool:
-    """Two saved states hold the same values (arrays compared exactly)."""
+    """The state ``b`` holds every value the saved state ``a`` holds (arrays compared exactly); keys
+    ``b`` has beyond ``a``'s are state added to the code since the run saved ``a``."""
     if isinstance(a, dict) and isinstance(b, dict):
-        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+        return a.keys() <= b.keys() and all(_same(a[k], b[k]) for k in a)
     if isinstance(a, list | tuple) and isinstance(b, list | tuple):
         return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b, strict=True))
     if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):

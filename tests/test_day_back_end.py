@@ -130,3 +130,14 @@ def test_an_export_packs_the_runs_front_end_with_the_replayed_back_end(tmp_path)
     pc.load_state_dict(stages["pose_cells"])
     assert pc.last_odom_frame == 2 * SyntheticWorldSource(**PARAMS).route_len - 1
     assert not out.with_suffix("").exists()  # the folder it was packed from is gone
+
+
+def test_a_replayed_state_reproduces_a_saved_one_with_state_added_since():
+    """reproduces_run_end: every value the run saved must be in the replayed state, exactly; keys the
+    code has added to a state since (the bias's anchoring) are not the run's to match."""
+    saved = {"pc": {"P": np.arange(4.0)}, "bias": {"scalars": [0.1, 2.0]}}
+    replayed = {"pc": {"P": np.arange(4.0)}, "bias": {"scalars": [0.1, 2.0], "anchor": [0.1, 0.0, np.nan]}}
+    assert day_back_end._same(saved, replayed)
+    assert not day_back_end._same(replayed, saved)  # a value the replay lacks
+    replayed["pc"]["P"] = np.arange(4.0) + 1e-12
+    assert not day_back_end._same(saved, replayed)  # one value off

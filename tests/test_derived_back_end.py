@@ -17,7 +17,7 @@ def test_synthetic_world_a_ring_in_a_small_area():
     assert pc["pc_dim_xy"] == 21 and pc["exp_delta_pc_threshold"] == 2.0
     assert math.isclose(pc["pc_cell_x_size"], 0.3)
     assert pc["odometry_bias"] == {"enabled": True, "samples_from": "templates", "forget_s": 5.0,
-                                   "bidirectional": False}
+                                   "bidirectional": False, "anchor_s": 100.0}
     assert pc["odometry_gate"]["radius_m"] == 0.0
     # experiences closer than the pose cells tell apart (2 cells of 0.3 m) merge into an earlier
     # visit's (one at least 23.7 / 0.6 s before) once they are 23.7 / 0.3 s old (map_pruning.py)

@@ -361,3 +361,55 @@ def test_nordland_protocol_resolves_the_gap_and_the_calibration_quantile():
     assert resolve_params({"theta_sigma": None}, bits, ids, 4, 150, 99.9) == {"theta_sigma": 5}
     assert resolve_params({"theta_sigma": 7}, bits, ids, 4, 150, 99.9) == {"theta_sigma": 7}
 
+
+
+def test_yaw_bias_anchoring_follows_the_turn_the_odometry_does_not_explain(tmp_path):
+    from neoslam_stream.algorithms.ratslam.odometry_bias import YawBiasEstimator
+
+    cell = 2 * math.pi / 36
+    est = YawBiasEstimator(enabled=True, samples_from="templates", anchor_s=10.0)
+    est.on_heading(1.0, 0.1, 1.0, cell)  # the first heading: nothing to compare with
+    assert est.bias == 0.0
+    # the odometry turned the cells by 0.1 rad, they turned 0.05: a view pulled them back 0.05 rad,
+    # the corrected rate is 0.05 rad/s too fast, and the offset moves by 0.05 / anchor_s
+    est.on_heading(1.05, 0.1, 1.0, cell)
+    assert est.offset == pytest.approx(0.005) and est.bias == pytest.approx(0.005)
+    # a step of a pose cell's angle or more is the packet moving elsewhere: left out
+    est.on_heading(1.05 + 0.1 + cell, 0.1, 1.0, cell)
+    assert est.offset == pytest.approx(0.005)
+    # across the wrap of the heading: +pi - 0.01 to -pi + 0.01 is a turn of 0.02 rad, as the odometry's
+    est.on_heading(math.pi - 0.01, 0.0, 1.0, cell)
+    est.on_heading(-math.pi + 0.01, 0.02, 1.0, cell)
+    assert est.offset == pytest.approx(0.005)
+    # the returns' least-squares level and the offset add up; both go through a checkpoint
+    from neoslam_stream.runtime.checkpoint import load_state_file, save_state_file
+
+    save_state_file(tmp_path / "s", est.state_dict())
+    again = YawBiasEstimator(enabled=True, samples_from="templates", anchor_s=10.0)
+    again.load_state_dict(load_state_file(tmp_path / "s"))
+    assert (again.level, again.offset, again.bias) == (est.level, est.offset, est.bias)
+    again.on_heading(-math.pi + 0.01 + 0.03, 0.02, 1.0, cell)  # the saved heading is the reference
+    assert again.offset == pytest.approx(0.005 - 0.01 / 10.0)
+    # off (anchor_s 0, the estimator's default): the heading is not read
+    plain = YawBiasEstimator(enabled=True, samples_from="templates")
+    plain.on_heading(0.0, 0.0, 1.0, cell)
+    plain.on_heading(0.5 * cell, 0.0, 1.0, cell)
+    assert plain.bias == 0.0
+
+
+def test_yaw_bias_anchoring_converges_to_a_bias_at_its_time_constant():
+    from neoslam_stream.algorithms.ratslam.odometry_bias import YawBiasEstimator
+
+    # views hold the cells' heading to the true one at every step; the odometry reads b = 0.03
+    # rad/s too much. The residual r = b - estimate then shrinks by (1 - dt / anchor_s) a step:
+    # after n steps the estimate is b (1 - (1 - dt / tau)^n)
+    b, dt, tau, omega = 0.03, 0.1, 5.0, 0.2
+    est = YawBiasEstimator(enabled=True, samples_from="templates", anchor_s=tau)
+    truth = 0.0
+    est.on_heading(truth, 0.0, dt, 2 * math.pi / 36)
+    for n in range(1, 301):
+        used = est.correct(omega + b, dt)
+        truth += omega * dt
+        est.on_heading(math.remainder(truth, 2 * math.pi), used, dt, 2 * math.pi / 36)
+        if n in (50, 150, 300):
+            assert est.bias == pytest.approx(b * (1 - (1 - dt / tau) ** n), rel=1e-9)

@@ -4,20 +4,32 @@ A loop closure measures the heading error accumulated since the place was first 
 faces as it faced then (plus the view's relative rotation), so with H(t) the raw yaw rate's
 integral and gap_i = t - t_e
 
-    drift_i = wrap(H(t) - H(t_e) - relative_rad - b gap_i) + b gap_i
+    drift_i = wrap(H(t) - H(t_e) - relative_rad - b_LS gap_i) + b_LS gap_i
 
-(wrapped around the current estimate; modulo pi when ``bidirectional``, for a front end that also
-recognises a place seen the other way round). t_e is the place's latest visit at least ``min_gap_s``
+(wrapped around the returns' current estimate b_LS, below; modulo pi when ``bidirectional``, for a
+front end that also recognises a place seen the other way round). t_e is the place's latest visit at least ``min_gap_s``
 before (``reference: latest``), or its first (``first``). A sample averages the bias over its gap,
 and its heading is known only modulo a turn: against the first visit, after hours of driving it
 averages a bias that has wandered since and can move b by at most pi / gap, so a wandering bias
 slips past the estimate, which then follows an alias (docs/long_runs.md: a day's run). The latest
-visit keeps the gap at one loop. b = sum w_i drift_i gap_i / sum w_i gap_i^2, with
+visit keeps the gap at one loop. b = b_LS = sum w_i drift_i gap_i / sum w_i gap_i^2, with
 w_i = exp(-age_i / forget_s); closures sooner than ``min_gap_s`` are not used, and a rate further
-than ``max_residual_rad_s`` from b is an outlier. Samples come from the pose cells' returns to an
+than ``max_residual_rad_s`` from b_LS is an outlier. Samples come from the pose cells' returns to an
 experience (``samples_from: actions``) or from every recognised template (``templates``: a
 look-alike faces the same way, so it measures the heading too). ``enabled: false`` (the default,
 OpenRatSLAM) passes the odometry through. Study and figures: docs/mapping.md.
+
+``anchor_s`` > 0 adds what the pose cells' anchoring measures, every frame and without a wrap: a
+recognised view pulls the cells' heading to the heading it was learned with, so the turn of the
+cells' heading that the corrected odometry does not explain, e = wrap(theta_pc(t) - theta_pc(t-dt)
+- (vrot - b) dt), is -(b_true - b) dt wherever views anchor it (0 where none does). An offset c
+follows it, c <- c - e / anchor_s (a first-order filter of time constant anchor_s on the residual
+rate -e / dt; steps of a pose cell's angle or more are the packet moving elsewhere, not a pull, and
+are left out), and the estimate is b = b_LS + c: the returns set the level, the anchoring follows
+what the level misses between them, including a return that unwrapped onto an alias. The returns
+are unwrapped around b_LS, not b: the offset moves with every pull of the pose cells, and around it
+a long return's wrap would move from one alias to the next and the level would swing (a
+there-and-back corridor's returns 1 000 s apart are told apart at pi / 1 000 s, 0.003 rad/s).
 
 How far b wanders is the robot's own (a gyro's random walk, a gearbox warming up), and the map's
 ``bias_walk`` relaxation needs it: :attr:`YawBiasEstimator.wander` is the mean of
@@ -56,6 +68,8 @@ class OdometryBiasConfig(BaseModel):
     reference: Literal["latest", "first"] = Field(
         "latest", description="the heading a return is compared with: the place's latest visit at least "
                               "min_gap_s before, or its first (module docstring)")
+    anchor_s: float = Field(0.0, ge=0, description="time constant of the offset that follows the pose cells' "
+                                                   "anchoring (module docstring); 0: off")
 
 
 class YawBiasEstimator:
@@ -65,8 +79,13 @@ class YawBiasEstimator:
 
     def __init__(self, config: OdometryBiasConfig | None = None, **overrides: Any) -> None:
         self.config = make_config(OdometryBiasConfig, config, overrides)
-        #: the estimate b (rad/s), subtracted from every yaw rate once known
+        #: the estimate b (rad/s), subtracted from every yaw rate once known: the returns' least-squares
+        #: level plus the anchoring's offset (``anchor_s``)
         self.bias = 0.0
+        self.level = 0.0
+        self.offset = 0.0
+        #: the pose cells' heading after the previous odometry step (rad; None: none yet)
+        self._theta_prev: float | None = None
         #: H(t): the raw yaw rate's integral, and t: the odometry's time
         self.heading = 0.0
         self.t = 0.0
@@ -132,8 +151,8 @@ class YawBiasEstimator:
             return
         if self.config.reference == "latest":  # the next return is compared with this visit, outlier or not
             self.born[ref] = (self.heading, self.t)
-        drift = self._wrap(self.heading - h0 - relative_rad - self.bias * gap) + self.bias * gap
-        if self.samples and abs(drift / gap - self.bias) > self.config.max_residual_rad_s:
+        drift = self._wrap(self.heading - h0 - relative_rad - self.level * gap) + self.level * gap
+        if self.samples and abs(drift / gap - self.level) > self.config.max_residual_rad_s:
             self.outliers += 1
             return
         if self.config.forget_s > 0 and self.samples:
@@ -144,8 +163,24 @@ class YawBiasEstimator:
         self._sum_dg += drift * gap
         self._sum_gg += gap * gap
         self.samples += 1
-        self.bias = self._sum_dg / self._sum_gg
+        self.level = self._sum_dg / self._sum_gg
+        self.bias = self.level + self.offset
         self._note_wander()
+
+    def on_heading(self, theta_rad: float, vrot_used: float, dt: float, jump_rad: float) -> None:
+        """The pose cells' heading after an odometry step that turned them by ``vrot_used`` * ``dt``
+        (the corrected yaw rate): with ``anchor_s``, the offset follows the turn the odometry did not
+        explain (module docstring); a step of ``jump_rad`` or more is the packet moving elsewhere."""
+        if not (self.enabled and self.config.anchor_s > 0):
+            return
+        prev, self._theta_prev = self._theta_prev, theta_rad
+        if prev is None or dt <= 0:
+            return
+        e = clip_pi(theta_rad - prev - vrot_used * dt)
+        if abs(e) < jump_rad:
+            step = -e / self.config.anchor_s
+            self.offset += step
+            self.bias += step
 
     def _note_wander(self) -> None:
         """Pair the new estimate with the latest one at least min_gap_s older (module docstring)."""
@@ -167,11 +202,13 @@ class YawBiasEstimator:
         robot's odometry) is kept."""
         self.born = {}
         self.last_template = -1
+        self._theta_prev = None
 
     def state_dict(self) -> dict[str, Any]:
         return {"scalars": [self.bias, self.heading, self.t, self._sum_dg, self._sum_gg, self._last_sample_t,
                             self.samples, self.outliers, self._sum_q, self._pairs],
                 "last_template": self.last_template,
+                "anchor": [self.level, self.offset, math.nan if self._theta_prev is None else self._theta_prev],
                 "history": np.array(self._history, dtype=np.float64).reshape(-1, 2),
                 "born": np.array([(k, h, t) for k, (h, t) in self.born.items()], dtype=np.float64).reshape(-1, 3)}
 
@@ -181,4 +218,8 @@ class YawBiasEstimator:
         self.samples, self.outliers, self._pairs = int(samples), int(outliers), int(pairs)
         self._history = deque((float(t), float(b)) for t, b in np.asarray(st["history"], dtype=np.float64).reshape(-1, 2))
         self.last_template = int(st["last_template"])
+        # a state saved before the anchoring: the estimate was the level alone
+        level, offset, theta = st.get("anchor", [self.bias, 0.0, math.nan])
+        self.level, self.offset = float(level), float(offset)
+        self._theta_prev = None if math.isnan(float(theta)) else float(theta)
         self.born = {int(k): (float(h), float(t)) for k, h, t in np.asarray(st["born"], dtype=np.float64).reshape(-1, 3)}

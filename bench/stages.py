@@ -29,9 +29,9 @@ stand-ins) every frame against the frames at least REVISIT_TRAVEL_M of travel ea
 RADIUS_M with the same facing, recall over the revisiting frames. A's features are cached as
 bench/streams.py does ($NEOSLAM_CACHE). Writes bench/results/stages.json (per part and stage:
 recall_at_1, pr_area, recall_at_precision at 0.9, 0.95, 1.0, the curve in at most 50 points;
-``summary``: per part the recall@1 of each stage, whether B keeps A's and D's recall at precision
-0.95 B's, alone and with D's evidence; ``b_below_a``, ``d_below_b``, ``d_below_b_sequence``: the
-parts where it does not) and bench/results/
+``summary``: per part the recall@1 of each stage, whether B's keeps A's, and whether D's recall at
+precision 0.95 keeps B's, alone and given D's evidence; ``b_below_a``, ``d_below_b``,
+``d_below_b_sequence``: the parts where one does not) and bench/results/
 stages.png (one panel per part). docs/mapping.md, "Reading bench/stages.py", says how to read them.
 Run: ``.venv/bin/python bench/stages.py [--parts nordland:0,gardens:hard:a,...] [--out FILE]``
 (the default: every part; about 9 minutes on 2 cores, 5.5 with A's features cached); ``--plot``
@@ -227,7 +227,8 @@ def run_part(part: str) -> dict[str, Any]:
 
 
 def summary(parts: dict[str, Any]) -> dict[str, Any]:
-    """Per part: each stage's recall@1 and whether B's is at least A's."""
+    """Per part: each stage's recall@1, whether B's is at least A's, and D's recall at precision 0.95
+    against B's, alone and given D's evidence."""
     out = {}
     for part, r in parts.items():
         if "skipped" in r:

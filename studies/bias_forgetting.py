@@ -84,16 +84,12 @@ def default_back_end() -> Any:
     return load_config("default").back_end()
 
 
-def replay(rows: list[tuple], forget_s: float, reference: str | None = None,
-           anchor_s: float | None = None) -> dict[str, float]:
-    """The default's back end with ``forget_s`` (and the bias's ``reference`` and ``anchor_s``,
-    None: the default's) over a recorded front-end stream."""
+def replay(rows: list[tuple], forget_s: float, **bias: Any) -> dict[str, float]:
+    """The default's back end with ``forget_s`` (and any other ``pose_cells.odometry_bias`` field in
+    ``bias``; the rest the default's) over a recorded front-end stream."""
     cfg = default_back_end().model_copy(deep=True)
-    cfg.pose_cells.odometry_bias.forget_s = forget_s
-    if reference is not None:
-        cfg.pose_cells.odometry_bias.reference = reference
-    if anchor_s is not None:
-        cfg.pose_cells.odometry_bias.anchor_s = anchor_s
+    old = cfg.pose_cells.odometry_bias  # validated again: a misspelt field is an error
+    cfg.pose_cells.odometry_bias = type(old).model_validate({**old.model_dump(), "forget_s": forget_s, **bias})
     be = BackEnd(cfg)
     online, local, gt = [], [], []
     for tid, rel, odo, stamp, xy in rows:
@@ -109,15 +105,14 @@ def replay(rows: list[tuple], forget_s: float, reference: str | None = None,
             "bias_rad_s": be.pose_cells.bias.bias, "bias_samples": be.pose_cells.bias.samples}
 
 
-def tuc_half(half: str, forget_s: float, reference: str | None = None,
-             anchor_s: float | None = None) -> dict[str, float]:
+def tuc_half(half: str, forget_s: float, **bias: Any) -> dict[str, float]:
+    """The TUC run's ``half`` with the default's back end, ``forget_s`` and ``bias`` (other
+    ``odometry_bias`` fields) set."""
     from bench_settings import back_end_sections
     from tuc_corridor import run_half
 
     pose_cells, em = back_end_sections("tuc")
-    bias = {**pose_cells["odometry_bias"], "forget_s": forget_s, **({"reference": reference} if reference else {}),
-            **({"anchor_s": anchor_s} if anchor_s is not None else {})}
-    pose_cells = {**pose_cells, "odometry_bias": bias}
+    pose_cells = {**pose_cells, "odometry_bias": {**pose_cells["odometry_bias"], "forget_s": forget_s, **bias}}
     r = run_half(half, pose_cells, em)
     return {"online_m": r["map_mean_m"], "final_map_m": r["map_on_final_mean_m"], "odometry_m": r["odometry_mean_m"]}
 

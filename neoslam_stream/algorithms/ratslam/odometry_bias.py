@@ -79,9 +79,8 @@ class YawBiasEstimator:
 
     def __init__(self, config: OdometryBiasConfig | None = None, **overrides: Any) -> None:
         self.config = make_config(OdometryBiasConfig, config, overrides)
-        #: the estimate b (rad/s), subtracted from every yaw rate once known: the returns' least-squares
-        #: level plus the anchoring's offset (``anchor_s``)
-        self.bias = 0.0
+        #: the returns' least-squares level b_LS and the anchoring's offset c (rad/s): the estimate
+        #: :attr:`bias` is their sum
         self.level = 0.0
         self.offset = 0.0
         #: the pose cells' heading after the previous odometry step (rad; None: none yet)
@@ -101,6 +100,15 @@ class YawBiasEstimator:
         self._history: deque[tuple[float, float]] = deque()
         self._sum_q = 0.0
         self._pairs = 0
+
+    @property
+    def bias(self) -> float:
+        """The estimate b (rad/s), subtracted from every yaw rate once known: b_LS + c."""
+        return self.level + self.offset
+
+    @bias.setter
+    def bias(self, value: float) -> None:
+        self.level = value - self.offset
 
     @property
     def wander(self) -> float:
@@ -164,7 +172,6 @@ class YawBiasEstimator:
         self._sum_gg += gap * gap
         self.samples += 1
         self.level = self._sum_dg / self._sum_gg
-        self.bias = self.level + self.offset
         self._note_wander()
 
     def on_heading(self, theta_rad: float, vrot_used: float, dt: float, jump_rad: float) -> None:
@@ -178,9 +185,7 @@ class YawBiasEstimator:
             return
         e = clip_pi(theta_rad - prev - vrot_used * dt)
         if abs(e) < jump_rad:
-            step = -e / self.config.anchor_s
-            self.offset += step
-            self.bias += step
+            self.offset -= e / self.config.anchor_s
 
     def _note_wander(self) -> None:
         """Pair the new estimate with the latest one at least min_gap_s older (module docstring)."""
@@ -213,13 +218,13 @@ class YawBiasEstimator:
                 "born": np.array([(k, h, t) for k, (h, t) in self.born.items()], dtype=np.float64).reshape(-1, 3)}
 
     def load_state_dict(self, st: dict[str, Any]) -> None:
-        (self.bias, self.heading, self.t, self._sum_dg, self._sum_gg, self._last_sample_t,
+        (bias, self.heading, self.t, self._sum_dg, self._sum_gg, self._last_sample_t,
          samples, outliers, self._sum_q, pairs) = (float(v) for v in st["scalars"])
         self.samples, self.outliers, self._pairs = int(samples), int(outliers), int(pairs)
         self._history = deque((float(t), float(b)) for t, b in np.asarray(st["history"], dtype=np.float64).reshape(-1, 2))
         self.last_template = int(st["last_template"])
         # a state saved before the anchoring: the estimate was the level alone
-        level, offset, theta = st.get("anchor", [self.bias, 0.0, math.nan])
+        level, offset, theta = st.get("anchor", [bias, 0.0, math.nan])
         self.level, self.offset = float(level), float(offset)
         self._theta_prev = None if math.isnan(float(theta)) else float(theta)
         self.born = {int(k): (float(h), float(t)) for k, h, t in np.asarray(st["born"], dtype=np.float64).reshape(-1, 3)}

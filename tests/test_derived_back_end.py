@@ -11,13 +11,15 @@ from neoslam_stream.algorithms.errors import InvalidInput
 
 def test_synthetic_world_a_ring_in_a_small_area():
     # 0.3 m/s, a 23.7 m lap in a 10 m area: cell 0.3 m; 23.7 > 2.2 * 10 = 22, a ring, so headings
-    # are compared over a whole turn; gate radius 0.3 * 100 = 30 m >= 10 m: off
+    # are compared over a whole turn; gate radius 0.3 * 100 = 30 m >= 10 m: off; the bias's
+    # anchoring over one lap at 0.3 m/s, 23.7 / 0.3 = 79 s
     s = derived_back_end(speed_mps=0.3, shortest_loop_m=23.7, area_m=10.0)
     pc, em = s["pose_cells"], s["experience_map"]
     assert pc["pc_dim_xy"] == 21 and pc["exp_delta_pc_threshold"] == 2.0
     assert math.isclose(pc["pc_cell_x_size"], 0.3)
-    assert pc["odometry_bias"] == {"enabled": True, "samples_from": "templates", "forget_s": 5.0,
-                                   "bidirectional": False, "anchor_s": 100.0}
+    bias = dict(pc["odometry_bias"])
+    assert math.isclose(bias.pop("anchor_s"), 79.0)
+    assert bias == {"enabled": True, "samples_from": "templates", "forget_s": 5.0, "bidirectional": False}
     assert pc["odometry_gate"]["radius_m"] == 0.0
     # experiences closer than the pose cells tell apart (2 cells of 0.3 m) merge into an earlier
     # visit's (one at least 23.7 / 0.6 s before) once they are 23.7 / 0.3 s old (map_pruning.py)
@@ -35,10 +37,13 @@ def test_tuc_corridor_there_and_back_in_a_long_area():
     assert math.isclose(pc["pc_cell_x_size"], 0.4)
     assert pc["odometry_bias"]["bidirectional"] is True
     assert math.isclose(pc["odometry_gate"]["radius_m"], 40.0) and pc["odometry_gate"]["drift"] == 0.1
-    # the same back end when the user gives the corridor's length as the loop, but for the map's
-    # pruning, whose earlier visit and settling time follow the loop
+    # the bias's anchoring over the way there and back at 0.4 m/s: 835 s
+    assert math.isclose(pc["odometry_bias"]["anchor_s"], 835.0)
+    # the same back end when the user gives the corridor's length as the loop, but for the times
+    # that follow the loop: the map's pruning (its earlier visit and settling time) and the anchoring
     other = derived_back_end(speed_mps=0.4, shortest_loop_m=167.0, area_m=167.0)
-    assert other["pose_cells"] == pc
+    assert math.isclose(other["pose_cells"]["odometry_bias"].pop("anchor_s"), 167.0 / 0.4)
+    assert {**other["pose_cells"], "odometry_bias": {**other["pose_cells"]["odometry_bias"], "anchor_s": 835.0}} == pc
     times = ("prune_gap_s", "prune_age_s")
     assert {k: v for k, v in other["experience_map"].items() if k not in times} == \
         {k: v for k, v in s["experience_map"].items() if k not in times}

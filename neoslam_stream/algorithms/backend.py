@@ -158,7 +158,6 @@ GATE_S = 100.0        # the odometry gate's radius is the distance driven in thi
 GATE_DRIFT = 0.1      # ... plus this many metres per metre driven since the last accepted recognition
 RING_FACTOR = 2.2     # a shortest loop longer than this times the area's extent encloses part of it
 BIAS_FORGET_S = 5.0   # the yaw-rate bias follows the recognitions of the last few seconds
-BIAS_ANCHOR_S = 100.0  # ... and, between them, the pose cells' anchoring, over this time constant
 PC_DIM_XY = 21
 EXP_DELTA_PC_THRESHOLD = 2.0
 
@@ -179,8 +178,8 @@ def derived_back_end(speed_mps: float = 0.5, shortest_loop_m: float = 10.0, area
       over ``BIAS_FORGET_S``: each already averages the bias over the 30 s or more since its
       place was seen, and a bias that wanders (a random walk, a warming gearbox) is followed by
       the latest of them. Between them the estimate follows the turn the corrected odometry does
-      not explain where recognised views hold the pose cells' heading, over ``BIAS_ANCHOR_S``
-      (``anchor_s``; chosen on two days of other odometry draws: studies/bias_anchoring.py): a
+      not explain where recognised views hold the pose cells' heading, over one shortest loop at
+      the typical speed (``anchor_s``), the time a return takes to measure the bias again: a
       return's heading is known only modulo a turn, and a bias that wanders faster than a return
       can tell apart is lost by the returns alone;
     * the odometry gate's radius is the distance driven in ``GATE_S`` plus ``GATE_DRIFT`` per metre
@@ -192,9 +191,10 @@ def derived_back_end(speed_mps: float = 0.5, shortest_loop_m: float = 10.0, area
       a robot whose bias barely wanders gets nearly one rate for the whole run.
 
     Constants chosen on synthetic worlds 1-4 and the first half of the TUC run (``BIAS_FORGET_S``
-    and the relaxation with its ``walk_*`` constants on worlds 1, 3, 4 and that half;
-    ``BIAS_ANCHOR_S`` on a day's templates with two other odometry draws, within 5 % of no anchoring's
-    final map on worlds 1, 3, 4 and that half; by the rules in docs/mapping.md).
+    and the relaxation with its ``walk_*`` constants on worlds 1, 3, 4 and that half; the
+    anchoring's loop time over fixed times on a day's templates with two other odometry draws,
+    within 5 % of no anchoring's final map on worlds 1, 3, 4 and that half; by the rules in
+    docs/mapping.md).
     """
     for name, value in (("speed_mps", speed_mps), ("shortest_loop_m", shortest_loop_m), ("area_m", area_m)):
         if not (math.isfinite(value) and value > 0):
@@ -207,7 +207,7 @@ def derived_back_end(speed_mps: float = 0.5, shortest_loop_m: float = 10.0, area
             "exp_delta_pc_threshold": EXP_DELTA_PC_THRESHOLD,
             "odometry_bias": {"enabled": True, "samples_from": "templates", "forget_s": BIAS_FORGET_S,
                               "bidirectional": bool(shortest_loop_m <= RING_FACTOR * area_m),
-                              "anchor_s": BIAS_ANCHOR_S},
+                              "anchor_s": shortest_loop_m / speed_mps},
             "odometry_gate": {"radius_m": radius if radius < area_m else 0.0, "drift": GATE_DRIFT},
         },
         "experience_map": {"relaxation": "bias_walk", "exp_initial_em_deg": 0.0,

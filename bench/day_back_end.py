@@ -52,7 +52,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from day import APE_SLACK, lap_ape  # noqa: E402
 
 from neoslam_stream.algorithms.backend import BackEnd, BackEndConfig  # noqa: E402
-from neoslam_stream.algorithms.ratslam.experience_map import poses_on_map  # noqa: E402
+from neoslam_stream.algorithms.ratslam.map_poses import poses_on_map  # noqa: E402
 from neoslam_stream.nodes.ratslam import ExperienceMapNode, PoseCellsNode  # noqa: E402
 from neoslam_stream.runtime.checkpoint import export_map, load_state_file, save_state_file  # noqa: E402
 from neoslam_stream.sources.synthetic import SyntheticWorldSource  # noqa: E402

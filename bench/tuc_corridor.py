@@ -21,7 +21,8 @@ import numpy as np
 from bench_settings import data_root, load_settings
 
 from neoslam_stream.algorithms.backend import PoseCellStage, integrate
-from neoslam_stream.algorithms.ratslam.experience_map import ExperienceMap, poses_on_map
+from neoslam_stream.algorithms.ratslam.experience_map import ExperienceMap
+from neoslam_stream.algorithms.ratslam.map_poses import poses_on_map
 from neoslam_stream.algorithms.sequence import SequenceFilter
 from neoslam_stream.evaluation import best_rotation_2d
 

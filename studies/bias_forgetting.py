@@ -34,7 +34,7 @@ from bench_settings import cache_key
 from relaxation import TEST, VALIDATION  # the back end's parts, as the relaxation's
 
 from neoslam_stream.algorithms.backend import BackEnd
-from neoslam_stream.algorithms.ratslam.experience_map import poses_on_map
+from neoslam_stream.algorithms.ratslam.map_poses import poses_on_map
 from neoslam_stream.config import load_config
 from neoslam_stream.evaluation import ape
 

@@ -28,7 +28,8 @@ from typing import Any
 import _paths  # the package and bench/ on sys.path
 import numpy as np
 
-from neoslam_stream.algorithms.ratslam.experience_map import ExperienceMap, poses_on_map
+from neoslam_stream.algorithms.ratslam.experience_map import ExperienceMap
+from neoslam_stream.algorithms.ratslam.map_poses import poses_on_map
 from neoslam_stream.evaluation import ape
 
 SWEEPS = (20, 50, 100, 200, 300, 500, 1000)

@@ -5,7 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from neoslam_stream.algorithms.ratslam.experience_map import ExperienceMap, poses_on_map
+from neoslam_stream.algorithms.ratslam.experience_map import ExperienceMap
+from neoslam_stream.algorithms.ratslam.map_poses import poses_on_map
 from neoslam_stream.algorithms.ratslam.pose_cells import CREATE_EDGE, CREATE_NODE
 
 

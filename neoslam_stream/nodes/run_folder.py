@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from ..algorithms.ratslam.experience_map import export_node_poses, poses_on_map
+from ..algorithms.ratslam.map_poses import export_node_poses, poses_on_map
 from ..algorithms.records import MapPose, Template
 from ..runtime.files import AppendFile, complete_lines, describe_write_error, write_atomic
 from .run_numbers import KeyedNumbers, NumberRows

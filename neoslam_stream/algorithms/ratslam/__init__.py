@@ -14,7 +14,7 @@ from typing import Any
 _EXPORTS = {
     "PoseCellNetwork": "pose_cells", "PoseCellConfig": "pose_cells",
     "NO_ACTION": "pose_cells", "CREATE_NODE": "pose_cells", "CREATE_EDGE": "pose_cells", "SET_NODE": "pose_cells",
-    "ExperienceMap": "experience_map", "ExperienceMapConfig": "experience_map", "poses_on_map": "experience_map",
+    "ExperienceMap": "experience_map", "ExperienceMapConfig": "experience_map", "poses_on_map": "map_poses",
     "LocalViewCells": "local_view", "LocalViewConfig": "local_view",
     "VisualOdometry": "visual_odometry", "VisualOdometryConfig": "visual_odometry",
     "YawBiasEstimator": "odometry_bias", "OdometryBiasConfig": "odometry_bias",

@@ -41,6 +41,7 @@ from ..errors import InvalidInput
 from .actions import CREATE_EDGE, CREATE_NODE, SET_NODE
 from .angles import clip_pi
 from .graph_solve import relax_least_squares
+from .map_poses import export_node_poses
 from .map_pruning import compose, prune
 from .pose_graph import bias_walk_weights, relax_pose_graph
 from .sweeps import relax_sweeps
@@ -97,38 +98,6 @@ class ExperienceMapConfig(BaseModel):
 def signed_delta(a1: float, a2: float) -> float:
     """Signed smallest rotation from a1 to a2."""
     return clip_pi(a2 - a1)
-
-
-def poses_on_map(nodes: dict[int, tuple[float, float, float]], exp_ids: np.ndarray,
-                 local: np.ndarray) -> np.ndarray:
-    """Poses (k, 3) re-expressed on a (relaxed) map: each pose's offset ``local`` (dx, dy, dtheta) in
-    the frame of its experience (:meth:`ExperienceMap.local_pose`) applied to that experience's
-    pose in ``nodes`` (id -> x, y, theta): x_e + R(theta_e) (dx, dy), theta_e + dtheta. Rows whose
-    experience is -1 or not in ``nodes`` keep ``local`` as it is (a pose before the first
-    experience is already absolute)."""
-    local = np.asarray(local, dtype=np.float64).reshape(-1, 3)
-    out = local.copy()
-    for i, e in enumerate(np.asarray(exp_ids).reshape(-1).tolist()):
-        node = nodes.get(int(e))
-        if node is None:
-            continue
-        x, y, th = node
-        c, s = math.cos(th), math.sin(th)
-        dx, dy, dth = local[i]
-        out[i] = (x + c * dx - s * dy, y + s * dx + c * dy, clip_pi(th + dth))
-    return out
-
-
-def export_node_poses(export: dict[str, Any]) -> dict[int, tuple[float, float, float]]:
-    """Every experience's pose on an exported map (:meth:`ExperienceMap.export`, map.json), id ->
-    (x, y, theta): the nodes, and each merged experience at its pose in the frame of the node it
-    merged into: what :func:`poses_on_map` re-expresses recorded poses on."""
-    nodes = {int(n["id"]): (float(n["x"]), float(n["y"]), float(n["theta"])) for n in export.get("nodes", [])}
-    for e in export.get("merged", []):
-        into = nodes.get(int(e["into"]))
-        if into is not None:
-            nodes[int(e["id"])] = compose(into, (float(e["dx"]), float(e["dy"]), float(e["dtheta"])))
-    return nodes
 
 
 def _grow(a: np.ndarray, n: int) -> np.ndarray:

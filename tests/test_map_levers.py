@@ -413,3 +413,21 @@ def test_yaw_bias_anchoring_converges_to_a_bias_at_its_time_constant():
         est.on_heading(math.remainder(truth, 2 * math.pi), used, dt, 2 * math.pi / 36)
         if n in (50, 150, 300):
             assert est.bias == pytest.approx(b * (1 - (1 - dt / tau) ** n), rel=1e-9)
+
+
+def test_yaw_bias_anchoring_is_never_faster_than_ten_odometry_steps():
+    from neoslam_stream.algorithms.ratslam.odometry_bias import ANCHOR_MIN_STEPS, YawBiasEstimator
+
+    # a platform whose loop time is shorter than a few steps (anchor_s 0.05 s at dt 0.1 s) would
+    # make the offset overshoot by 20 x each step and oscillate; the guard makes the time constant
+    # ANCHOR_MIN_STEPS steps, 1 s here, and the residual shrinks by (1 - dt / 1 s) = 0.9 a step
+    assert ANCHOR_MIN_STEPS == 10
+    b, dt, omega = 0.03, 0.1, 0.2
+    est = YawBiasEstimator(enabled=True, samples_from="templates", anchor_s=0.05)
+    truth = 0.0
+    est.on_heading(truth, 0.0, dt, 2 * math.pi / 36)
+    for n in range(1, 61):
+        used = est.correct(omega + b, dt)
+        truth += omega * dt
+        est.on_heading(math.remainder(truth, 2 * math.pi), used, dt, 2 * math.pi / 36)
+        assert est.bias == pytest.approx(b * (1 - 0.9 ** n), rel=1e-9)

@@ -24,12 +24,13 @@ recognised view pulls the cells' heading to the heading it was learned with, so 
 cells' heading that the corrected odometry does not explain, e = wrap(theta_pc(t) - theta_pc(t-dt)
 - (vrot - b) dt), is -(b_true - b) dt wherever views anchor it (0 where none does). An offset c
 follows it, c <- c - e / anchor_s (a first-order filter of time constant anchor_s on the residual
-rate -e / dt; steps of a pose cell's angle or more are the packet moving elsewhere, not a pull, and
-are left out), and the estimate is b = b_LS + c: the returns set the level, the anchoring follows
-what the level misses between them, including a return that unwrapped onto an alias. The returns
-are unwrapped around b_LS, not b: the offset moves with every pull of the pose cells, and around it
-a long return's wrap would move from one alias to the next and the level would swing (a
-there-and-back corridor's returns 1 000 s apart are told apart at pi / 1 000 s, 0.003 rad/s).
+rate -e / dt, at least ``ANCHOR_MIN_STEPS`` odometry steps; steps of a pose cell's angle or more are
+the packet moving elsewhere, not a pull, and are left out), and the estimate is b = b_LS + c: the
+returns set the level, the anchoring follows what the level misses between them, including a return
+that unwrapped onto an alias. The returns are unwrapped around b_LS, not b: the offset moves with
+every pull of the pose cells, and around it a long return's wrap would move from one alias to the
+next and the level would swing (a there-and-back corridor's returns 1 000 s apart are told apart at
+pi / 1 000 s, 0.003 rad/s).
 
 How far b wanders is the robot's own (a gyro's random walk, a gearbox warming up), and the map's
 ``bias_walk`` relaxation needs it: :attr:`YawBiasEstimator.wander` is the mean of
@@ -50,6 +51,12 @@ from .._config import make_config
 from ..errors import InvalidInput
 from .actions import CREATE_EDGE, NO_ACTION, SET_NODE
 from .angles import clip_pi
+
+#: the anchoring's time constant is never shorter than this many odometry steps: its offset
+#: integrates a reading taken once a step, with a gain dt / tau a step through the pose cells, and
+#: at a few steps or less that loop overshoots and oscillates (a numerical guard, not chosen on data;
+#: the derived back end's loop times lie far above it)
+ANCHOR_MIN_STEPS = 10
 
 
 class OdometryBiasConfig(BaseModel):
@@ -185,7 +192,7 @@ class YawBiasEstimator:
             return
         e = clip_pi(theta_rad - prev - vrot_used * dt)
         if abs(e) < jump_rad:
-            self.offset -= e / self.config.anchor_s
+            self.offset -= e / max(self.config.anchor_s, ANCHOR_MIN_STEPS * dt)
 
     def _note_wander(self) -> None:
         """Pair the new estimate with the latest one at least min_gap_s older (module docstring)."""

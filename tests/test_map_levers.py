@@ -397,37 +397,41 @@ def test_yaw_bias_anchoring_follows_the_turn_the_odometry_does_not_explain(tmp_p
     assert plain.bias == 0.0
 
 
-def test_yaw_bias_anchoring_converges_to_a_bias_at_its_time_constant():
+def _anchored_estimates(anchor_s: float, b: float, dt: float, steps: int) -> list[float]:
+    """The estimate after each of ``steps`` odometry steps when views hold the cells' heading to the
+    true one at every step and the odometry reads b rad/s too much (turning at 0.2 rad/s)."""
     from neoslam_stream.algorithms.ratslam.odometry_bias import YawBiasEstimator
 
-    # views hold the cells' heading to the true one at every step; the odometry reads b = 0.03
-    # rad/s too much. The residual r = b - estimate then shrinks by (1 - dt / anchor_s) a step:
-    # after n steps the estimate is b (1 - (1 - dt / tau)^n)
-    b, dt, tau, omega = 0.03, 0.1, 5.0, 0.2
-    est = YawBiasEstimator(enabled=True, samples_from="templates", anchor_s=tau)
+    omega, cell = 0.2, 2 * math.pi / 36
+    est = YawBiasEstimator(enabled=True, samples_from="templates", anchor_s=anchor_s)
     truth = 0.0
-    est.on_heading(truth, 0.0, dt, 2 * math.pi / 36)
-    for n in range(1, 301):
+    est.on_heading(truth, 0.0, dt, cell)
+    out = []
+    for _ in range(steps):
         used = est.correct(omega + b, dt)
         truth += omega * dt
-        est.on_heading(math.remainder(truth, 2 * math.pi), used, dt, 2 * math.pi / 36)
-        if n in (50, 150, 300):
-            assert est.bias == pytest.approx(b * (1 - (1 - dt / tau) ** n), rel=1e-9)
+        est.on_heading(math.remainder(truth, 2 * math.pi), used, dt, cell)
+        out.append(est.bias)
+    return out
+
+
+def test_yaw_bias_anchoring_converges_to_a_bias_at_its_time_constant():
+    # the odometry reads b = 0.03 rad/s too much. The residual r = b - estimate shrinks by
+    # (1 - dt / anchor_s) a step: after n steps the estimate is b (1 - (1 - dt / tau)^n)
+    b, dt, tau = 0.03, 0.1, 5.0
+    got = _anchored_estimates(tau, b, dt, 300)
+    for n in (50, 150, 300):
+        assert got[n - 1] == pytest.approx(b * (1 - (1 - dt / tau) ** n), rel=1e-9)
 
 
 def test_yaw_bias_anchoring_is_never_faster_than_ten_odometry_steps():
-    from neoslam_stream.algorithms.ratslam.odometry_bias import ANCHOR_MIN_STEPS, YawBiasEstimator
+    from neoslam_stream.algorithms.ratslam.odometry_bias import ANCHOR_MIN_STEPS
 
     # a platform whose loop time is shorter than a few steps (anchor_s 0.05 s at dt 0.1 s) would
     # make the offset overshoot by 20 x each step and oscillate; the guard makes the time constant
     # ANCHOR_MIN_STEPS steps, 1 s here, and the residual shrinks by (1 - dt / 1 s) = 0.9 a step
     assert ANCHOR_MIN_STEPS == 10
-    b, dt, omega = 0.03, 0.1, 0.2
-    est = YawBiasEstimator(enabled=True, samples_from="templates", anchor_s=0.05)
-    truth = 0.0
-    est.on_heading(truth, 0.0, dt, 2 * math.pi / 36)
+    b = 0.03
+    got = _anchored_estimates(0.05, b, 0.1, 60)
     for n in range(1, 61):
-        used = est.correct(omega + b, dt)
-        truth += omega * dt
-        est.on_heading(math.remainder(truth, 2 * math.pi), used, dt, 2 * math.pi / 36)
-        assert est.bias == pytest.approx(b * (1 - 0.9 ** n), rel=1e-9)
+        assert got[n - 1] == pytest.approx(b * (1 - 0.9 ** n), rel=1e-9)

@@ -32,6 +32,7 @@ Run: ``.venv/bin/python studies/bias_anchoring.py [--out studies/results/bias_an
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
@@ -63,7 +64,9 @@ def loop_s(part: str) -> float:
     return float(p["shortest_loop_m"]) / float(p["speed_mps"])
 
 
+@functools.lru_cache(maxsize=1)
 def default_platform() -> dict[str, Any]:
+    """The shipped default's platform (read once)."""
     from neoslam_stream.config import load_config
 
     return load_config("default").platform.model_dump()

@@ -44,7 +44,7 @@ import numpy as np
 import neoslam_stream.algorithms.projector as projector
 from neoslam_stream.algorithms.frontend import FrontEnd
 from neoslam_stream.config import load_config
-from neoslam_stream.evaluation.recognition import cosine
+from neoslam_stream.evaluation.recognition import best_matches, cosine
 
 PARTS = ["sparse:1", "sparse:2", "synthetic:1", "synthetic:3", "nordland:2", "hard:9", "hard:10",
          "gardens:night:a", "gardens:view:a"]
@@ -52,16 +52,6 @@ RETURN_PARTS = ["sparse:1", "sparse:2"]
 #: returning frames after the first lap that the lap-shaped run keeps
 RETURN_FRAMES = 10
 BLUR = 0.05
-
-
-def running_means(x: np.ndarray, w: int) -> np.ndarray:
-    """B's running mean after each frame (RunningCentre with kappa 0)."""
-    out = np.empty_like(x)
-    m = np.zeros(x.shape[1])
-    for t in range(len(x)):
-        m = m + (x[t] - m) / min(t + 1, w)
-        out[t] = m
-    return out
 
 
 def filled(means: np.ndarray, prior: np.ndarray, w: int) -> np.ndarray:
@@ -73,8 +63,9 @@ def filled(means: np.ndarray, prior: np.ndarray, w: int) -> np.ndarray:
 
 
 def recall(scores: np.ndarray, allowed: np.ndarray, right: np.ndarray, rows: np.ndarray) -> float:
-    best = np.where(allowed, scores, -np.inf).argmax(1)
-    ok = right[np.arange(len(right)), best]
+    """recall@1 over ``rows``: how often the best allowed match is a right one."""
+    best, _ = best_matches(scores, allowed)
+    ok = (best >= 0) & right[np.arange(len(right)), np.maximum(best, 0)]
     return round(float(ok[rows].mean()), 4) if rows.any() else float("nan")
 
 
@@ -89,11 +80,11 @@ def centring_variants(part: str) -> dict[str, Any]:
     allowed, right = allowed.astype(bool), right.astype(bool)
     has = right.any(1)
     early = np.array([r.any() and c[r].min() < w - 1 for r in right])
-    means = running_means(x, w)
+    fe = FrontEnd(cfg.front_end())
+    means = x - fe.projector.centre(x)  # B's running mean after each frame, as B keeps it
     hold = means.copy()
     hold[:w] = x[:w].mean(0)
     img = next(iter(stream.frames()))
-    fe = FrontEnd(cfg.front_end())
     prior = np.asarray(fe.features([cv2.GaussianBlur(img, (0, 0), BLUR * img.shape[1])]), np.float64)[0]
     ix = np.ix_(q, c)
     scores = {"causal": cosine(x - means)[ix], "hold": cosine(x - hold)[ix],

@@ -177,8 +177,8 @@ def sequence_curve(scores: np.ndarray, allowed: np.ndarray, right: np.ndarray, q
     """A ranking given the evidence D's decision takes (algorithms/calibration.py ``accept``): a
     query is scored only when the ``length`` frames before it were queries whose best matches lie
     within i * ``max_step`` + ``slack`` of its own, i frames back
-    (:func:`~neoslam_stream.algorithms.sequence.refs_consistent`, on candidate frames), by the mean of the ``length`` + 1 best scores; any other query is never
-    accepted. ``queries``, ``candidates``: the frame numbers of the rows and columns. With
+    (:func:`~neoslam_stream.algorithms.sequence.refs_consistent`, on candidate frames), by the mean
+    of the ``length`` + 1 best scores; any other query is never accepted. ``queries``, ``candidates``: the frame numbers of the rows and columns. With
     ``length`` 0 it is :func:`ranking_curve`."""
     best, score = best_matches(scores, allowed)
     q = np.asarray(queries, dtype=np.int64)

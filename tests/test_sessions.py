@@ -75,6 +75,36 @@ def test_a_new_session_recognises_the_stored_places_once_its_evidence_spans_sequ
     assert not any(r["is_loop_closure"] for r in _drive(stale, places, seed=2))
 
 
+def test_a_new_session_starts_an_interval_of_its_own_and_keeps_no_template_of_where_the_old_one_ended():
+    """The old session ended at place 199; the new one starts at place 0. Its first frames are
+    refused while their evidence gathers (sequence_m), and a refused frame that stands out may
+    keep the current template (merge_revisits' hold): that must not be the old session's last
+    template, or the pose cells read it as the robot being where the old session ended. A first
+    view like the old session's last one opens an interval of its own too (the old interval's
+    union is another time's)."""
+    cfg = SpatialViewConfig(calibration={"enabled": True}, index_revisits=False, merge_revisits=True)
+    places = _places(200)
+    first = SpatialViewCells(cfg, PLATFORM)
+    out1 = _drive(first, places, seed=1)
+    last = out1[-1]["id"]
+    state = first.state_dict()
+
+    second = SpatialViewCells(cfg, PLATFORM)
+    second.load_state_dict(state)
+    second.new_session()
+    out2 = _drive(second, places[:40], seed=2)
+    assert all(r["id"] != last for r in out2)
+    loops = [i for i, r in enumerate(out2) if r["is_loop_closure"]]
+    assert loops and all(out2[i]["id"] == out1[i]["id"] for i in loops)  # and it does recognise them
+
+    again = SpatialViewCells(cfg, PLATFORM)
+    again.load_state_dict(state)
+    again.new_session()
+    n = again.n_intervals
+    again.compute(places[-1], stamp=0.0)  # the very view the old session ended on
+    assert again.n_intervals == n + 1 and again.current_template != last
+
+
 # ---------------------------------------------------------------------------- pose cells
 def _network() -> PoseCellNetwork:
     return PoseCellNetwork(pc_cell_x_size=1.0, exp_delta_pc_threshold=2.0)

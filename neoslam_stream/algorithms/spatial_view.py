@@ -200,7 +200,8 @@ class SpatialViewCells:
         cfg = self.config
         y = self._validate(sdr)
         stamp = float(self.t if stamp is None else stamp)
-        if self._old_last_stamp is not None:  # a new session's first frame: the old stamps move back
+        session_start = self._old_last_stamp is not None
+        if session_start:  # a new session's first frame: the old stamps move back
             shift = self.calibration.session_shift(self._old_last_stamp, stamp)
             for k in self._kept():
                 self.interval_stamps[k] += shift
@@ -208,7 +209,7 @@ class SpatialViewCells:
             self._old_last_stamp = None
         y_bm = BitMap(y)
         new_interval = False
-        if not self.unions:
+        if not self.unions or session_start:  # a new session's first view continues no old interval
             new_interval = True
         else:
             cur = self.n_intervals - 1
@@ -466,6 +467,11 @@ class SpatialViewCells:
             self._old_last_stamp = float(last)
         self.calibration.new_session()
         self.descriptors.new_session()  # the views a moment ago were the old stream's
+        # where the old session ended is not where this one starts: its first frame opens an
+        # interval of its own, and no held frame keeps the old session's last template
+        self.current_template = -1
+        if self.merge is not None:
+            self.merge.end_hold()
 
     # ---------------------------------------------------------------- state
     def state_dict(self) -> dict[str, Any]:

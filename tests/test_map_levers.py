@@ -217,6 +217,26 @@ def test_yaw_bias_is_the_heading_drift_of_a_closed_loop_over_its_duration():
     assert est.outliers == 1 and est.samples == 1 and est.bias == pytest.approx(0.01, rel=1e-9)
 
 
+def test_a_new_session_measures_the_yaw_bias_afresh():
+    from neoslam_stream.algorithms.ratslam.odometry_bias import YawBiasEstimator
+    from neoslam_stream.algorithms.ratslam.pose_cells import SET_NODE
+
+    # yesterday: the circle of the test above read 0.025 rad/s too much (drift 2.5 rad over 100 s)
+    est = YawBiasEstimator(enabled=True, max_residual_rad_s=0.01)
+    est.on_action(CREATE_NODE, 0)
+    _circle(est, 2 * math.pi / 100, 0.025, 100.0)
+    est.on_action(SET_NODE, 0)
+    assert est.bias == pytest.approx(0.025, rel=1e-9)
+    est.new_session()
+    # today's odometry reads 0.005 rad/s too much: the estimate starts at 0 and the first return
+    # sets it (held at 0.025, the return would lie 0.02 rad/s off it: an outlier, kept out)
+    assert est.bias == 0.0 and est.correct(0.3, 0.1) == pytest.approx(0.3)
+    est.on_action(CREATE_NODE, 7)
+    _circle(est, 2 * math.pi / 100, 0.005, 100.0)
+    est.on_action(SET_NODE, 7)
+    assert est.bias == pytest.approx(0.005, rel=1e-9) and est.samples == 1 and est.outliers == 0
+
+
 def test_yaw_bias_weighs_older_closures_less_and_ignores_quick_returns(tmp_path):
     from neoslam_stream.algorithms.ratslam.odometry_bias import YawBiasEstimator
     from neoslam_stream.algorithms.ratslam.pose_cells import SET_NODE

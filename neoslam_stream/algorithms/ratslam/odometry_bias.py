@@ -210,11 +210,21 @@ class YawBiasEstimator:
 
     def new_session(self) -> None:
         """A new session of a loaded map: the robot's heading is unrelated to the raw heading of the
-        old session, so its experiences can no longer serve as references; the bias (the same
-        robot's odometry) is kept."""
+        old session, so its experiences can no longer serve as references, and the bias is measured
+        afresh as in a first session (estimate 0, the first return sets it; the wander measured, the
+        robot's own, stays). A session is a new power-on after a gap of unknown length: a gyro's
+        bias changes at every power-on and over the gap by the wander, so the old session's last
+        estimate may be far off, and held, it makes the pose cells' dead reckoning turn the wrong
+        way and every return an outlier (a day's map, docs/long_runs.md: a final-map APE of 0.39 m
+        for the next session, 0.077 m afresh). A bias that did not change is found again by the
+        first returns and the anchoring, as in the first session."""
         self.born = {}
         self.last_template = -1
         self._theta_prev = None
+        self.level = self.offset = 0.0
+        self._sum_dg = self._sum_gg = 0.0
+        self.samples = 0
+        self._history.clear()
 
     def state_dict(self) -> dict[str, Any]:
         return {"scalars": [self.bias, self.heading, self.t, self._sum_dg, self._sum_gg, self._last_sample_t,

@@ -215,9 +215,9 @@ class YawBiasEstimator:
         robot's own, stays). A session is a new power-on after a gap of unknown length: a gyro's
         bias changes at every power-on and over the gap by the wander, so the old session's last
         estimate may be far off, and held, it makes the pose cells' dead reckoning turn the wrong
-        way and every return an outlier (a day's map, docs/long_runs.md: a final-map APE of 0.39 m
-        for the next session, 0.077 m afresh). A bias that did not change is found again by the
-        first returns and the anchoring, as in the first session."""
+        way and every return an outlier, and the session's new experiences bend the stored map
+        (docs/long_runs.md, a day's map). A bias that did not change is found again by the first
+        returns and the anchoring, as in the first session."""
         self.born = {}
         self.last_template = -1
         self._theta_prev = None

@@ -15,6 +15,9 @@ closure changes downstream, D's merges and templates, and reproduces the shipped
 * ``condition_shift``: how the places seen recently (under the query's own light) but outside its
   neighbourhood score against the old unrelated places, in the old places' sd: a sign of a change
   of light that a run could use to lower the level;
+* ``heading_oracle``: on the single routes (their truth has headings), the rules at z_min 3.5 with
+  and without a gate no run has, the truth's heading: a forward camera sees a place again facing
+  the same way, so a winner seen facing more than a quarter turn away is refused;
 * ``rerank``: B's recall@1 with its bits' shortlist re-ranked by the descriptors (as shipped), by
   A's own score (cosine less the run's mean up to the query), or by both standardised and summed.
 
@@ -155,6 +158,18 @@ def _with_frames(cal: RunCalibration, frames: int) -> RunCalibration:
     return longer
 
 
+def heading_gated(confidence: Callable[[dict[str, Any]], float], rec: dict[str, Any]) -> Callable[[dict[str, Any]], float]:
+    """``confidence``, refused (-inf) when the truth's headings at the frame and at its winner's
+    matched frame differ by more than a quarter turn."""
+    heading = rec["stream"].truth["gt"][:, 2]
+    by_frame = {id(r): t for t, r in rec["rows"].items()}
+
+    def gated(r: dict[str, Any]) -> float:
+        d = heading[by_frame[id(r)]] - heading[r["matched"]]
+        return confidence(r) if abs(math.atan2(math.sin(d), math.cos(d))) < math.pi / 2 else -math.inf
+    return gated
+
+
 def labels(rec: dict[str, Any]) -> dict[int, str]:
     """Per assessed frame, whether closing it on its winner would be right, wrong or neither (a
     re-recognition, not scored)."""
@@ -227,7 +242,8 @@ def main() -> None:
     ap.add_argument("--out", default=str(_paths.RESULTS / "revisit_levels.json"))
     args = ap.parse_args()
     parts = args.parts.split(",")
-    res: dict[str, Any] = {"parts": parts, "grid": [], "ratios": {}, "rerank": {}, "shipped": {}}
+    res: dict[str, Any] = {"parts": parts, "grid": [], "ratios": {}, "rerank": {}, "shipped": {},
+                           "heading_oracle": {}}
     records = {}
     for part in parts:
         print(f"{part} ...", flush=True)
@@ -236,17 +252,25 @@ def main() -> None:
         res["shipped"][part] = {k: rec["shipped"][k] for k in ("precision", "recall")}
         res["ratios"][part] = ratios(rec, labels(rec), z_min)
         res["rerank"][part] = rerank(part)
+        if rec["stream"].truth["kind"] == "world":
+            res["heading_oracle"][part] = {str(rho): {name: _figures(replay(rec, rule)) for name, rule in (
+                ("plain", confidence_rule(3.5, rho, 0.0)), ("gated", heading_gated(confidence_rule(3.5, rho, 0.0), rec)))}
+                for rho in GRID["rho"]}
         print(f"  {res['shipped'][part]} {res['ratios'][part]} {res['rerank'][part]}", flush=True)
     for point in itertools.product(*GRID.values()):
         p = dict(zip(GRID, point, strict=True))
         rule = confidence_rule(p["z_min"], p["rho"], p["lag_m"])
         figs = {part: replay(records[part], rule, p["min_frames"]) for part in parts}
-        res["grid"].append({**p, "parts": {k: [None if v["precision"] is None else round(v["precision"], 4),
-                                               round(v["recall"], 4)] for k, v in figs.items()}})
+        res["grid"].append({**p, "parts": {k: _figures(v) for k, v in figs.items()}})
     res["summary"] = summarise(res)
     Path(args.out).write_text(json.dumps(res, indent=1) + "\n")
     print(json.dumps(res["summary"], indent=1))
     print(f"wrote {args.out}")
+
+
+def _figures(score: dict[str, Any]) -> list[float | None]:
+    """[precision, recall] of a stream's score, rounded."""
+    return [None if score["precision"] is None else round(score["precision"], 4), round(score["recall"], 4)]
 
 
 def summarise(res: dict[str, Any]) -> dict[str, Any]:

@@ -1,9 +1,10 @@
 """studies/revisit_levels.py: the replayed decision's level and B's voted re-ranking, by hand."""
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
-from revisit_levels import _voted, _with_frames, confidence_rule
+from revisit_levels import _voted, _with_frames, confidence_rule, heading_gated
 
 from neoslam_stream.algorithms.calibration import CalibrationConfig, PlatformConfig, RunCalibration
 
@@ -40,3 +41,14 @@ def test_a_longer_stretch_only_for_the_replay():
     longer = _with_frames(cal, 4)
     assert longer.sequence_frames == 4 and longer.config is cal.config
     assert RunCalibration(CalibrationConfig(enabled=True), PlatformConfig(speed_mps=1.4)).sequence_frames == 1
+
+
+def test_the_heading_gate_refuses_a_winner_seen_facing_the_other_way():
+    # frames 0-3 facing east, north, east and west (headings in the truth's third column)
+    gt = np.array([[0, 0, 0.0], [0, 0, math.pi / 2], [0, 0, 2 * math.pi - 0.1], [0, 0, math.pi]])
+    rows = {2: {"matched": 0}, 3: {"matched": 0}, 1: {"matched": 0}}
+    rec = {"stream": SimpleNamespace(truth={"gt": gt}), "rows": rows}
+    gated = heading_gated(lambda r: 1.0, rec)
+    assert gated(rows[2]) == 1.0  # 2 pi - 0.1 from 0: 0.1 rad the other way round, the same facing
+    assert gated(rows[3]) == -math.inf  # half a turn
+    assert gated(rows[1]) == -math.inf  # exactly a quarter turn is not less than one

@@ -18,6 +18,9 @@ closure changes downstream, D's merges and templates, and reproduces the shipped
 * ``heading_oracle``: on the single routes (their truth has headings), the rules at z_min 3.5 with
   and without a gate no run has, the truth's heading: a forward camera sees a place again facing
   the same way, so a winner seen facing more than a quarter turn away is refused;
+* ``heading_visual``: the same gate on every part with the heading a run could have without
+  odometry, the default's visual odometry (``visual_odometry``) on the images, integrated from the
+  run's first frame (across the junction of two walks streamed one after the other too);
 * ``rerank``: B's recall@1 with its bits' shortlist re-ranked by the descriptors (as shipped), by
   A's own score (cosine less the run's mean up to the query), or by both standardised and summed.
 
@@ -40,6 +43,7 @@ import _paths  # the package and bench/ on sys.path
 import generalisation as G
 import numpy as np
 
+from neoslam_stream.algorithms.backend import CameraOdometry
 from neoslam_stream.algorithms.calibration import RunCalibration
 from neoslam_stream.algorithms.frontend import FrontEnd
 from neoslam_stream.evaluation.recognition import (
@@ -158,10 +162,22 @@ def _with_frames(cal: RunCalibration, frames: int) -> RunCalibration:
     return longer
 
 
-def heading_gated(confidence: Callable[[dict[str, Any]], float], rec: dict[str, Any]) -> Callable[[dict[str, Any]], float]:
-    """``confidence``, refused (-inf) when the truth's headings at the frame and at its winner's
-    matched frame differ by more than a quarter turn."""
-    heading = rec["stream"].truth["gt"][:, 2]
+def visual_heading(rec: dict[str, Any]) -> np.ndarray:
+    """Each frame's heading as the default's visual odometry integrates it from the images (rad,
+    0 at the first frame), with the part's stamps and platform."""
+    stream, cfg = rec["stream"], rec["config"]
+    vo = CameraOdometry(cfg.visual_odometry, cfg.platform.speed_mps)
+    turns = [vrot * dt for vrot, dt in (vo.on_frame(img, s)[1:] for img, s in
+                                         zip(stream.pixels(), stream.stamps, strict=True))]
+    return np.cumsum(turns)
+
+
+def heading_gated(confidence: Callable[[dict[str, Any]], float], rec: dict[str, Any],
+                  heading: np.ndarray | None = None) -> Callable[[dict[str, Any]], float]:
+    """``confidence``, refused (-inf) when the headings (the truth's unless ``heading`` is given) at
+    the frame and at its winner's matched frame differ by more than a quarter turn."""
+    if heading is None:
+        heading = rec["stream"].truth["gt"][:, 2]
     by_frame = {id(r): t for t, r in rec["rows"].items()}
 
     def gated(r: dict[str, Any]) -> float:
@@ -243,7 +259,7 @@ def main() -> None:
     args = ap.parse_args()
     parts = args.parts.split(",")
     res: dict[str, Any] = {"parts": parts, "grid": [], "ratios": {}, "rerank": {}, "shipped": {},
-                           "heading_oracle": {}}
+                           "heading_oracle": {}, "heading_visual": {}}
     records = {}
     for part in parts:
         print(f"{part} ...", flush=True)
@@ -256,6 +272,11 @@ def main() -> None:
             res["heading_oracle"][part] = {str(rho): {name: _figures(replay(rec, rule)) for name, rule in (
                 ("plain", confidence_rule(3.5, rho, 0.0)), ("gated", heading_gated(confidence_rule(3.5, rho, 0.0), rec)))}
                 for rho in GRID["rho"]}
+        seen = visual_heading(rec)
+        res["heading_visual"][part] = {str(rho): {name: _figures(replay(rec, rule)) for name, rule in (
+            ("plain", confidence_rule(3.5, rho, 0.0)), ("gated", heading_gated(confidence_rule(3.5, rho, 0.0), rec, seen)))}
+            for rho in GRID["rho"]}
+        print(f"  heading: {res['heading_oracle'].get(part)} {res['heading_visual'][part]}", flush=True)
         print(f"  {res['shipped'][part]} {res['ratios'][part]} {res['rerank'][part]}", flush=True)
     for point in itertools.product(*GRID.values()):
         p = dict(zip(GRID, point, strict=True))

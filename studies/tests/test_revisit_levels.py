@@ -4,7 +4,7 @@ import math
 from types import SimpleNamespace
 
 import numpy as np
-from revisit_levels import _voted, _with_frames, confidence_rule, heading_gated
+from revisit_levels import _voted, _with_frames, confidence_rule, heading_gated, visual_heading
 
 from neoslam_stream.algorithms.calibration import CalibrationConfig, PlatformConfig, RunCalibration
 
@@ -52,3 +52,20 @@ def test_the_heading_gate_refuses_a_winner_seen_facing_the_other_way():
     assert gated(rows[2]) == 1.0  # 2 pi - 0.1 from 0: 0.1 rad the other way round, the same facing
     assert gated(rows[3]) == -math.inf  # half a turn
     assert gated(rows[1]) == -math.inf  # exactly a quarter turn is not less than one
+
+
+def test_the_visual_heading_integrates_the_turn_the_images_show():
+    from neoslam_stream.config import load_config
+
+    rng = np.random.default_rng(3)
+    base = rng.integers(0, 255, (120, 160)).astype(np.float64)
+    base = (base + np.roll(base, 1, 1) + np.roll(base, 2, 1)) / 3  # some texture across columns
+    frames = [np.roll(base, 4 * i, axis=1) for i in range(3)]  # turning 4 columns a frame
+    cfg = load_config("default")
+    rec = {"stream": SimpleNamespace(pixels=lambda: iter(frames), stamps=np.array([0.0, 0.1, 0.2])), "config": cfg}
+    heading = visual_heading(rec)
+    focal = 160 / 2 / math.tan(math.radians(cfg.visual_odometry.camera_fov_deg) / 2)
+    turn = math.atan2(4, focal)  # the pinhole angle of a 4-column shift at the image's centre
+    assert heading[0] == 0.0
+    assert math.isclose(abs(heading[1]), turn, rel_tol=0.05)
+    assert math.isclose(heading[2], 2 * heading[1], rel_tol=0.05)

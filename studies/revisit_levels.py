@@ -15,9 +15,9 @@ closure changes downstream, D's merges and templates, and reproduces the shipped
 * ``condition_shift``: how the places seen recently (under the query's own light) but outside its
   neighbourhood score against the old unrelated places, in the old places' sd: a sign of a change
   of light that a run could use to lower the level;
-* ``heading_oracle``: on the single routes (their truth has headings), the rules at z_min 3.5 with
-  and without a gate no run has, the truth's heading: a forward camera sees a place again facing
-  the same way, so a winner seen facing more than a quarter turn away is refused;
+* ``heading_oracle``: on the single routes (their truth has headings), the rules at the shipped
+  z_min with and without a gate no run has, the truth's heading: a forward camera sees a place
+  again facing the same way, so a winner seen facing more than a quarter turn away is refused;
 * ``heading_visual``: the same gate on every part with the heading a run could have without
   odometry, the default's visual odometry (``visual_odometry``) on the images, integrated from the
   run's first frame (across the junction of two walks streamed one after the other too);
@@ -46,6 +46,7 @@ import numpy as np
 from neoslam_stream.algorithms.backend import CameraOdometry
 from neoslam_stream.algorithms.calibration import RunCalibration
 from neoslam_stream.algorithms.frontend import FrontEnd
+from neoslam_stream.config import load_config
 from neoslam_stream.evaluation.recognition import (
     causal_centred_cosine,
     cosine,
@@ -57,8 +58,9 @@ from neoslam_stream.evaluation.recognition import (
 #: travel back to the view whose score sets the level (0: the view a moment ago, as shipped)
 LAGS_M = (0.0, 2.0, 4.0)
 GRID = {"z_min": (3.0, 3.5, 4.0), "rho": (0.5, 0.7, 0.9), "min_frames": (1, 4), "lag_m": LAGS_M}
-#: the shipped rule's point of the grid
-SHIPPED = {"z_min": 3.5, "rho": 0.9, "min_frames": 1, "lag_m": 0.0}
+#: the shipped rule's point of the grid (its z_min and rho read from the default)
+_CALIBRATION = load_config("default").spatial_view.calibration
+SHIPPED = {"z_min": _CALIBRATION.z_min, "rho": _CALIBRATION.rho, "min_frames": 1, "lag_m": 0.0}
 SHORTLIST = 20
 
 
@@ -98,7 +100,7 @@ def record(part: str) -> dict[str, Any]:
     def on_assess(scores: np.ndarray, times: np.ndarray, recent: float | None, best: int | None = None):
         a = assess(scores, times, recent, best)
         if a is not None:
-            rows[sv.t] = {"z": a.z, "s": a.score, "mean": a.mean, "sd": a.sd, "recent": recent}
+            rows[sv.t] = {"frame": sv.t, "z": a.z, "s": a.score, "mean": a.mean, "sd": a.sd, "recent": recent}
         return a
 
     def on_calibrated(y: np.ndarray, y_bm: Any, stamp: float, descriptor: np.ndarray | None = None):
@@ -172,18 +174,21 @@ def visual_heading(rec: dict[str, Any]) -> np.ndarray:
     return np.cumsum(turns)
 
 
-def heading_gated(confidence: Callable[[dict[str, Any]], float], rec: dict[str, Any],
-                  heading: np.ndarray | None = None) -> Callable[[dict[str, Any]], float]:
-    """``confidence``, refused (-inf) when the headings (the truth's unless ``heading`` is given) at
-    the frame and at its winner's matched frame differ by more than a quarter turn."""
-    if heading is None:
-        heading = rec["stream"].truth["gt"][:, 2]
-    by_frame = {id(r): t for t, r in rec["rows"].items()}
-
+def heading_gated(confidence: Callable[[dict[str, Any]], float], heading: np.ndarray) -> Callable[[dict[str, Any]], float]:
+    """``confidence``, refused (-inf) when ``heading`` (rad, per frame) at the frame and at its
+    winner's matched frame differ by more than a quarter turn."""
     def gated(r: dict[str, Any]) -> float:
-        d = heading[by_frame[id(r)]] - heading[r["matched"]]
+        d = heading[r["frame"]] - heading[r["matched"]]
         return confidence(r) if abs(math.atan2(math.sin(d), math.cos(d))) < math.pi / 2 else -math.inf
     return gated
+
+
+def heading_figures(rec: dict[str, Any], plain: dict[float, list[float | None]],
+                    heading: np.ndarray) -> dict[str, dict[str, list[float | None]]]:
+    """Per rho, the shipped z_min's figures without (``plain``, already replayed) and with the
+    heading gate."""
+    return {str(rho): {"plain": plain[rho], "gated": _figures(replay(rec, heading_gated(
+        confidence_rule(SHIPPED["z_min"], rho, 0.0), heading)))} for rho in GRID["rho"]}
 
 
 def labels(rec: dict[str, Any]) -> dict[int, str]:
@@ -268,14 +273,10 @@ def main() -> None:
         res["shipped"][part] = {k: rec["shipped"][k] for k in ("precision", "recall")}
         res["ratios"][part] = ratios(rec, labels(rec), z_min)
         res["rerank"][part] = rerank(part)
+        plain = {rho: _figures(replay(rec, confidence_rule(SHIPPED["z_min"], rho, 0.0))) for rho in GRID["rho"]}
         if rec["stream"].truth["kind"] == "world":
-            res["heading_oracle"][part] = {str(rho): {name: _figures(replay(rec, rule)) for name, rule in (
-                ("plain", confidence_rule(3.5, rho, 0.0)), ("gated", heading_gated(confidence_rule(3.5, rho, 0.0), rec)))}
-                for rho in GRID["rho"]}
-        seen = visual_heading(rec)
-        res["heading_visual"][part] = {str(rho): {name: _figures(replay(rec, rule)) for name, rule in (
-            ("plain", confidence_rule(3.5, rho, 0.0)), ("gated", heading_gated(confidence_rule(3.5, rho, 0.0), rec, seen)))}
-            for rho in GRID["rho"]}
+            res["heading_oracle"][part] = heading_figures(rec, plain, rec["stream"].truth["gt"][:, 2])
+        res["heading_visual"][part] = heading_figures(rec, plain, visual_heading(rec))
         print(f"  heading: {res['heading_oracle'].get(part)} {res['heading_visual'][part]}", flush=True)
         print(f"  {res['shipped'][part]} {res['ratios'][part]} {res['rerank'][part]}", flush=True)
     for point in itertools.product(*GRID.values()):

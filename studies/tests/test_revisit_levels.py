@@ -46,9 +46,8 @@ def test_a_longer_stretch_only_for_the_replay():
 def test_the_heading_gate_refuses_a_winner_seen_facing_the_other_way():
     # frames 0-3 facing east, north, east and west (headings in the truth's third column)
     gt = np.array([[0, 0, 0.0], [0, 0, math.pi / 2], [0, 0, 2 * math.pi - 0.1], [0, 0, math.pi]])
-    rows = {2: {"matched": 0}, 3: {"matched": 0}, 1: {"matched": 0}}
-    rec = {"stream": SimpleNamespace(truth={"gt": gt}), "rows": rows}
-    gated = heading_gated(lambda r: 1.0, rec)
+    rows = {t: {"frame": t, "matched": 0} for t in (1, 2, 3)}
+    gated = heading_gated(lambda r: 1.0, gt[:, 2])
     assert gated(rows[2]) == 1.0  # 2 pi - 0.1 from 0: 0.1 rad the other way round, the same facing
     assert gated(rows[3]) == -math.inf  # half a turn
     assert gated(rows[1]) == -math.inf  # exactly a quarter turn is not less than one
